@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from toolkit.errors import CrossviewError, RecipeError, SceneError
+from toolkit.report import lookup
 
 # (column, dotted path in metrics.json) — the same paths the run summary uses
 METRIC_COLUMNS: tuple[tuple[str, str], ...] = (
@@ -231,15 +232,6 @@ def run_variants(variants: Sequence[Variant], scenes: Sequence[Path | None], out
 
 
 # --- tables -----------------------------------------------------------------------------------
-def lookup(values: Any, dotted: str) -> Any:
-    node = values
-    for part in dotted.split("."):
-        if not isinstance(node, dict) or part not in node:
-            return None
-        node = node[part]
-    return node
-
-
 def run_record(row: RunRow) -> dict[str, Any]:
     rec: dict[str, Any] = {"variant": row.variant, "scene": row.scene}
     for col, path in METRIC_COLUMNS:

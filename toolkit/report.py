@@ -56,6 +56,7 @@ HEADLINE: tuple[tuple[str, str, str], ...] = (
 
 
 def lookup(values: Any, dotted: str) -> Any:
+    """values["a"]["b"] for "a.b", or None when any part is missing."""
     node = values
     for part in dotted.split("."):
         if not isinstance(node, dict) or part not in node:

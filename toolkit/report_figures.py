@@ -10,10 +10,10 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from matplotlib.colors import ListedColormap
+from matplotlib.colors import ListedColormap, to_rgba_array
 from matplotlib.figure import Figure
 
-MAX_PLOT_POINTS = 120_000
+MAX_PLOT_POINTS = 40_000  # a 750×660 px panel shows no more; drawing scales with it
 SEGMENT_COLOURS = np.array([
     [31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 39, 40], [148, 103, 189], [140, 86, 75],
     [227, 119, 194], [188, 189, 34], [23, 190, 207], [174, 199, 232], [255, 187, 120], [152, 223, 138],
@@ -143,7 +143,7 @@ def matches_view(street, overview, matches, registration, segment_rows: list[dic
         if m >= 0:
             ax.plot([centres[s, 0], ov_c[m, 0]], [centres[s, 1], ov_c[m, 1]], color=colour, lw=1.6, zorder=3)
     idx = np.nonzero(sel)[0][plot_indices(int(sel.sum()))]
-    ax.scatter(xy_all[idx, 0], xy_all[idx, 1], s=marker_size(len(idx)), c=np.array(status, dtype=object)[labels[idx]].tolist(),
+    ax.scatter(xy_all[idx, 0], xy_all[idx, 1], s=marker_size(len(idx)), c=to_rgba_array(status)[labels[idx]],
                linewidths=0, zorder=2)
     ax.scatter(ov_c[:, 0], ov_c[:, 1], s=10, c="k", marker="+", zorder=4, label="over-view centroid")
     from matplotlib.lines import Line2D

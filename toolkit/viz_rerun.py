@@ -56,21 +56,24 @@ def to_rerun(value: Any, max_points: int) -> list[tuple[str, Any]]:
     return []
 
 
+def _point_colors(value: DebugPoints | DebugPoints2D, idx: np.ndarray) -> np.ndarray | None:
+    """Explicit colours if given, else a palette colour per class id, else None (viewer default)."""
+    if value.colors is not None:
+        return value.colors[idx]
+    return _palette(value.class_ids[idx]) if value.class_ids is not None else None
+
+
 @to_rerun.register
 def _(value: DebugPoints, max_points: int):
     idx = _subsample(len(value.xyz), max_points)
-    colors = value.colors[idx] if value.colors is not None else (
-        _palette(value.class_ids[idx]) if value.class_ids is not None else None)
-    return [("", rr.Points3D(np.asarray(value.xyz)[idx].astype(np.float32), colors=colors,
+    return [("", rr.Points3D(np.asarray(value.xyz)[idx].astype(np.float32), colors=_point_colors(value, idx),
                              radii=value.radius_m))]
 
 
 @to_rerun.register
 def _(value: DebugPoints2D, max_points: int):
     idx = _subsample(len(value.xy), max_points)
-    colors = value.colors[idx] if value.colors is not None else (
-        _palette(value.class_ids[idx]) if value.class_ids is not None else None)
-    return [("", rr.Points2D(np.asarray(value.xy)[idx].astype(np.float32), colors=colors,
+    return [("", rr.Points2D(np.asarray(value.xy)[idx].astype(np.float32), colors=_point_colors(value, idx),
                              radii=value.radius_m))]
 
 
