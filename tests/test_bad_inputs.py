@@ -104,19 +104,27 @@ def _footprints(scene: Path, doc) -> None:
     _replace(scene / "overview/footprints.geojson", json.dumps(doc) if not isinstance(doc, str) else doc)
 
 
-def _projected_footprints(scene: Path) -> None:
-    from pyproj import Transformer
-
+def _edit_footprints(scene: Path, edit_ring: Callable[[list], list]) -> None:
     doc = json.loads((scene / "overview/footprints.geojson").read_text())
-    tr = Transformer.from_crs("EPSG:4326", "EPSG:32617", always_xy=True)
     for f in doc["features"]:
         g = f["geometry"]
         polys = [g["coordinates"]] if g["type"] == "Polygon" else g["coordinates"]
         for poly in polys:
-            for ring in poly:
-                for pt in ring:
-                    pt[0], pt[1] = tr.transform(pt[0], pt[1])
+            poly[:] = [edit_ring(ring) for ring in poly]
     _footprints(scene, doc)
+
+
+def _projected_footprints(scene: Path) -> None:
+    from pyproj import Transformer
+
+    tr = Transformer.from_crs("EPSG:4326", "EPSG:32617", always_xy=True)
+    _edit_footprints(scene, lambda ring: [list(tr.transform(x, y)) for x, y in ring])
+
+
+def _collapsed_ring(ring: list) -> list:
+    """Every vertex on one line: a polygon with no area, which make_valid cannot turn into one."""
+    (x0, y0), (x1, y1) = ring[0], ring[1]
+    return [[x0, y0], [x1, y1], [x0, y0], [x1, y1]]
 
 
 def _images_txt(scene: Path, edit: Callable[[list[str]], list[str]]) -> None:
@@ -176,6 +184,9 @@ CASES: list[tuple[str, str, Mutation, str]] = [
     ("ortho-3-bands", DSM, lambda s, t: _rewrite_raster(s, "ortho.tif", bands=3) or [], "ortho.tif"),
     ("footprints-projected-no-crs", OSM, lambda s, t: _projected_footprints(s) or [], "footprints.geojson"),
     ("footprints-invalid-json", OSM, lambda s, t: _footprints(s, "{not json") or [], "footprints.geojson: invalid GeoJSON"),
+    ("footprints-all-invalid", OSM, lambda s, t: _edit_footprints(s, _collapsed_ring) or [], "footprints.geojson"),
+    ("nothing-matches", OSM, lambda s, t: _edit_footprints(s, lambda r: [[x + 0.004, y] for x, y in r]) or [],
+     "registered nothing"),
     ("footprints-empty", OSM, lambda s, t: _footprints(s, {"type": "FeatureCollection", "features": []}) or [],
      "footprints.geojson"),
     ("osm-no-buildings", OSM, lambda s, t: _manifest(s, lambda x: x.replace("  footprints: overview/footprints.geojson\n", ""))
