@@ -93,11 +93,15 @@ def main() -> None:
     m = build_mrf(g, p.costs, 0.1, 0.6, 10.0, 100.0)
     per_it = {}
     for dt in (np.float64, np.float32):
-        with Clock() as c1:
-            loopy_bp(m, max_iters=1, patience=10**6, dtype=dt)
-        with Clock() as c11:
-            loopy_bp(m, max_iters=11, patience=10**6, dtype=dt)
-        per_it[dt.__name__] = (c11.cpu - c1.cpu) / 10
+        runs = {}
+        for iters in (1, 11):  # best of 3: one 10-sweep difference is within the shared machine's noise
+            cpu = []
+            for _ in range(3):
+                with Clock() as c:
+                    loopy_bp(m, max_iters=iters, patience=10**6, dtype=dt)
+                cpu.append(c.cpu)
+            runs[iters] = min(cpu)
+        per_it[dt.__name__] = (runs[11] - runs[1]) / 10
     fast = per_it["float64"]
     rng = np.random.default_rng(0)
     sample = rng.choice(len(m.msg_send), size=min(args.sample, len(m.msg_send)), replace=False)

@@ -29,9 +29,12 @@ class TRWS(Stage):
         energy_tol: float = Field(1e-9, ge=0.0, description="relative energy change regarded as no change; "
                                                             "also the relative gap regarded as closed")
         bound_tol: float = Field(1e-5, ge=0.0, description="relative bound gain per pass regarded as stalled")
+        polish: bool = Field(True, description="finish with ICM from the best labelling (never raises the energy; "
+                                               "the decoded TRW-S labelling can miss single-node improvements "
+                                               "when the relaxation is not tight)")
 
     def __call__(self, graphs: ConjugateGraphs, costs: DataCosts, obs: Any) -> Matches:
         p = self.params
         return solve_stage(graphs, costs, p, obs, self.key(), lambda mrf, log: trws(
             mrf, max_iters=p.max_iters, patience=p.patience, energy_tol=p.energy_tol, bound_tol=p.bound_tol,
-            on_iter=log))
+            polish=p.polish, on_iter=log))

@@ -14,8 +14,10 @@ Pruning (scale is known): centre-line lengths must agree within ``length_toleran
 length_tolerance_fraction·len + centroid_slack·(ρ_p + ρ_q)`` (ρ: the largest centroid-to-outline
 distance, which bounds how far a façade centre can sit from its building centre); each façade must
 fit on its segment (extent ≤ diameter + tolerance). With street/gps.csv: the edge midpoint must land
-within gps_radius_m (+ the offset window) of its GPS-implied position, and the final pose must put
-both centres within gps_radius_m and turn within gps_angle_deg of the local GPS fit.
+within the GPS radius (+ the offset window) of its GPS-implied position, and the final pose must put
+both centres within that radius and turn within gps_angle_deg of the local GPS fit; the pose search
+itself only tries rotations within gps_angle_deg of the GPS heading, and ``gps_cost_weight`` adds a
+soft penalty growing with the distance from the GPS-implied positions.
 
 Search, vectorised over all candidate pairs (``search``):
 - ``window`` (the paper): every rotation of ±rotation_window_deg × a coarse offset grid over the
@@ -125,9 +127,22 @@ class DistanceMap(Stage):
                                          "the building's back wall. 0: chamfer only (paper).")
         probe_offset_m: float = Field(
             2.0, gt=0, description="Distance of the free-space probes from the façade.")
-        gps_radius_m: float = Field(
-            60.0, gt=0, description="With street/gps.csv: prune candidates placing a segment centre farther "
-                                    "than this from its GPS-implied position.")
+        gps_radius_m: float | None = Field(
+            None, gt=0, description="With street/gps.csv: prune candidates placing a segment centre farther "
+                                    "than this from its GPS-implied position. None: gps_radius_sigmas·σ + "
+                                    "gps_radius_margin_m, σ the median sigma_m of the fixes (10 m when the "
+                                    "file gives none); 3 m fixes → 20 m. The campus scenes' local GPS fits "
+                                    "put segments within 13 m of the truth; at 60 m repeated façades of the "
+                                    "next buildings along the street stay candidates.")
+        gps_cost_weight: float = Field(
+            0.1, ge=0, description="With GPS: add weight·(d / GPS radius)² to the raw chamfer cost, d the larger "
+                                   "distance of the pose-placed segment centres from their GPS-implied "
+                                   "positions (a soft prior inside the hard radius; raw cost 0.5 = null). "
+                                   "It tells repeated façades of neighbouring buildings apart. 0: hard "
+                                   "pruning only.")
+        gps_radius_sigmas: float = Field(5.0, gt=0, description="GPS radius in fix σ when gps_radius_m is None.")
+        gps_radius_margin_m: float = Field(
+            5.0, ge=0, description="Added to the σ-based GPS radius (pose error of the candidate itself).")
         gps_angle_deg: float | None = Field(
             45.0, gt=0, description="With GPS: prune candidates whose rotation differs more (None: no test).")
         gps_fit_fixes: int = Field(
@@ -191,11 +206,23 @@ class DistanceMap(Stage):
             from toolkit.matching.gps import gps_prior
 
             prior = gps_prior(scene, street, n_local=p.gps_fit_fixes, warn=obs.warn)
+        gps_radius = p.gps_radius_m
+        if prior is not None and gps_radius is None:
+            gps_radius = p.gps_radius_sigmas * prior.sigma_m + p.gps_radius_margin_m
         if prior is not None:
             # the edge midpoint lands within the offset window of the over-view midpoint
             g_mid = (prior.position[j[pe]] + prior.position[k[pe]]) / 2
-            ok = np.linalg.norm(o_mid[pl] + o_world - g_mid, axis=1) <= p.gps_radius_m + window
+            ok = np.linalg.norm(o_mid[pl] + o_world - g_mid, axis=1) <= gps_radius + window
             pe, pl, theta0, window = pe[ok], pl[ok], theta0[ok], window[ok]
+        # GPS heading of each pair (circular mean of its two segments' local fits), NaN without GPS.
+        # The search only tries rotations within gps_angle_deg of it: the final pose test would
+        # reject any other, and a same-segment label, which has no centre line, otherwise settles
+        # on the building's outline turned by 90° or 180° (rectangles fit that way too).
+        theta_gps = np.full(len(pe), np.nan)
+        if prior is not None and p.gps_angle_deg is not None:
+            theta_gps = np.arctan2(np.sin(prior.angle[j[pe]]) + np.sin(prior.angle[k[pe]]),
+                                   np.cos(prior.angle[j[pe]]) + np.cos(prior.angle[k[pe]]))
+            theta0 = np.where(loop[pl], theta_gps, theta0)
         window = window / gsd
         stats = {"pairs_total": E * (L - 1), "after_length": n_len, "after_gps": len(pe)}
         if len(pe) == 0:
@@ -236,7 +263,7 @@ class DistanceMap(Stage):
         else:
             anchors = AN.outline_anchors(overview, o_world, A_inv, px0, p.anchor_spacing_m)
             c_cost, c_pairs = self._anchor_search(score, atlas, A, px0, anchors, walls, pairs, pts_c, edges,
-                                                  s_mid, o_mid[pl], o_len[pl], rho, steps[0], stats)
+                                                  s_mid, o_mid[pl], o_len[pl], rho, steps[0], stats, theta_gps)
 
         # refine the best candidates of each edge, level by level, with all points
         top = _top_k_per_group(pe, c_cost, p.refine_top_k, c_pairs.pivot_px + c_pairs.offset)
@@ -266,9 +293,15 @@ class DistanceMap(Stage):
         m = s_mid[pe]
         rot_m = np.stack([c * m[:, 0] - s_ * m[:, 1], s_ * m[:, 0] + c * m[:, 1]], axis=1)
         t_hat = (f_pivot + f_off - px0) @ A_inv.T - rot_m + o_world
-        if prior is not None:  # the exact test on the final pose
-            f_cost[~self._gps_ok(prior, f_theta, t_hat, s_cent, j[pe], k[pe])] = np.inf
-        cost[pe, pl] = np.clip(f_cost / p.raw_cost_at_null, 0.0, 1.0)
+        if prior is not None:  # the exact test on the final pose, then the soft GPS term
+            dist, turn = self._gps_offsets(prior, f_theta, t_hat, s_cent, j[pe], k[pe])
+            bad = dist.max(axis=1) > gps_radius
+            if p.gps_angle_deg is not None:
+                bad |= turn.max(axis=1) > np.deg2rad(p.gps_angle_deg)
+            f_cost = f_cost + p.gps_cost_weight * (dist.max(axis=1) / gps_radius) ** 2
+            f_cost[bad] = np.inf
+        # pruned stays +inf (np.clip would turn it into 1, a tie with null that greedy then picks)
+        cost[pe, pl] = np.where(np.isfinite(f_cost), np.clip(f_cost / p.raw_cost_at_null, 0.0, 1.0), np.inf)
         theta_out[pe, pl] = _wrap(f_theta)
         t_out[pe, pl] = t_hat
         # twins of same-segment labels (label 2f+1 = label 2f when f is a self-loop)
@@ -295,9 +328,11 @@ class DistanceMap(Stage):
         return cost, CH.Pairs(pairs.edge, pairs.crops, theta, pairs.pivot_px, off)
 
     def _anchor_search(self, score, atlas, A, px0, anchors, walls, pairs: CH.Pairs, pts_c, edges,
-                       s_mid, o_mid_pairs, o_len_pairs, rho, step, stats):
+                       s_mid, o_mid_pairs, o_len_pairs, rho, step, stats, theta_gps):
         """Anchored hypotheses, each scored at its pose; pairs without one fall back to the window
-        search (both façades curved) or to the centre-line pose (no consistent anchoring)."""
+        search (both façades curved) or to the centre-line pose (no consistent anchoring).
+        theta_gps (P,): GPS heading (NaN: none); hypotheses turned farther than gps_angle_deg from
+        it are dropped before the best max_hypotheses are kept."""
         p = self.params
         s_anchor, s_dir, share = walls
         usable = share >= p.min_wall_share
@@ -310,7 +345,12 @@ class DistanceMap(Stage):
             bound = np.where(ratio < 1, np.arcsin(np.minimum(ratio, 1.0)), np.pi)
             rot_window = np.maximum(rot_window, np.minimum(bound, np.deg2rad(p.rotation_window_max_deg)))
         # same-segment labels have no over-view centre line: any rotation
-        rot_window[pairs.crops[:, 0] == pairs.crops[:, 1]] = np.pi
+        same = pairs.crops[:, 0] == pairs.crops[:, 1]
+        has_gps = np.isfinite(theta_gps)
+        rot_window[same] = np.pi
+        if p.gps_angle_deg is not None:  # same-segment labels are centred on the GPS heading
+            rot_window[same & has_gps] = np.deg2rad(p.gps_angle_deg)
+        gps_window = np.deg2rad(p.gps_angle_deg) if p.gps_angle_deg is not None else np.pi
         cost = np.full(P, np.inf)
         theta, pivot = pairs.theta.copy(), pairs.pivot_px.copy()
         offset = np.zeros((P, 2), np.int64)
@@ -320,7 +360,7 @@ class DistanceMap(Stage):
             idx = np.arange(start, min(P, start + chunk))
             hp, hyp = AN.hypotheses(atlas, A, px0, anchors, pairs.take(idx), s_anchor, s_dir, usable, edges,
                                     s_mid, o_mid_pairs[idx], rot_window[idx], p.anchor_tolerance_px,
-                                    p.max_hypotheses)
+                                    p.max_hypotheses, theta_gps[idx], gps_window)
             if len(hp) == 0:
                 return None
             h_cost, h_theta, _ = score(1, pts_c, hyp, np.zeros(1), np.zeros((1, 2)))
@@ -358,19 +398,18 @@ class DistanceMap(Stage):
         keep &= ext[k][:, None] <= diam[lp[:, 1]][None, :] + p.extent_tolerance_m
         return keep
 
-    def _gps_ok(self, prior, theta, t, s_cent, sj, sk) -> np.ndarray:
-        """Final poses putting both segment centres within gps_radius_m of their GPS-implied
-        positions and turning within gps_angle_deg of the GPS fit's rotation."""
-        p = self.params
+    @staticmethod
+    def _gps_offsets(prior, theta, t, s_cent, sj, sk) -> tuple[np.ndarray, np.ndarray]:
+        """(P,2) distances of both segment centres, placed by the poses, from their GPS-implied
+        positions, and (P,2) |rotation − the local GPS fit's rotation| (radians)."""
         c, s = np.cos(theta), np.sin(theta)
-        ok = np.ones(len(theta), bool)
+        dist, turn = [], []
         for seg in (sj, sk):
             x = s_cent[seg]
             placed = np.stack([c * x[:, 0] - s * x[:, 1], s * x[:, 0] + c * x[:, 1]], 1) + t
-            ok &= np.linalg.norm(placed - prior.position[seg], axis=1) <= p.gps_radius_m
-            if p.gps_angle_deg is not None:
-                ok &= np.abs(_wrap(theta - prior.angle[seg])) <= np.deg2rad(p.gps_angle_deg)
-        return ok
+            dist.append(np.linalg.norm(placed - prior.position[seg], axis=1))
+            turn.append(np.abs(_wrap(theta - prior.angle[seg])))
+        return np.stack(dist, axis=1), np.stack(turn, axis=1)
 
     def _probes(self, scene, street: StreetSegments, walls, coarse, s_cent, edges, stats):
         """Free-space probes: each segment's coarse points moved probe_offset_m towards the side

@@ -99,3 +99,21 @@ def test_greedy_is_winner_takes_all():
     m = _mrf(p)
     g = greedy(m)
     np.testing.assert_array_equal(m.to_global(g.labels), np.argmin(p.costs.cost, axis=1))
+
+
+def test_trws_polish_never_raises_the_energy_and_ends_at_a_local_minimum():
+    """match.trws finishes with ICM from its best labelling: the energy can only go down, the bound
+    is untouched, and no single node can then lower the energy by changing its label."""
+    from toolkit.matching.mrf import conditional_scores
+
+    p = synthetic_problem(n_matched=30, n_street_only=3, n_overview_only=8, seed=11, decoy_rate=0.3,
+                          length_tol_m=30)
+    m = _mrf(p)
+    raw, polished = trws(m, polish=False), trws(m)
+    assert polished.energy <= raw.energy + 1e-12
+    assert polished.lower_bound == pytest.approx(raw.lower_bound)
+    assert polished.energy == pytest.approx(m.energy(m.to_global(polished.labels)))
+    x = polished.labels
+    for i in range(m.n_nodes):
+        score = conditional_scores(m, i, x)
+        assert score.min() >= score[x[i]] - 1e-9

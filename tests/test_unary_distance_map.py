@@ -219,6 +219,46 @@ def test_gps_prunes_candidates_but_keeps_the_true_ones(tmp_path, toy, solved):
     assert np.mean(np.isfinite(with_gps.cost[e, lab[e]])) >= 0.95
 
 
+def test_gps_pruned_candidates_are_infinite_and_survivors_obey_the_prior(tmp_path, toy, solved):
+    """Every finite candidate puts both street centres within the GPS radius of their GPS-implied
+    positions and turns within gps_angle_deg of the GPS heading: a candidate failing the final pose
+    test is +inf, not clipped to 1 (a tie with null that winner-takes-all would pick)."""
+    from toolkit.matching.gps import gps_prior
+
+    graphs, _ = solved
+    scene = _scene(tmp_path / "gps", toy)
+    params = DistanceMap.Params(gps_radius_m=15)
+    costs = DistanceMap(params)(graphs, toy.street, toy.overview, scene, NullObserver())
+    prior = gps_prior(scene, toy.street)
+    e, lab = np.nonzero(np.isfinite(costs.cost[:, :-1]))
+    assert len(e) > 0
+    th, t = costs.theta_rad[e, lab], costs.t[e, lab]
+    for side in (0, 1):
+        seg = graphs.street_edges[e, side]
+        x = toy.street.centroids[seg]
+        placed = np.einsum("nij,nj->ni", np.stack([np.stack([np.cos(th), -np.sin(th)], 1),
+                                                   np.stack([np.sin(th), np.cos(th)], 1)], 1), x) + t
+        assert np.linalg.norm(placed - prior.position[seg], axis=1).max() <= 15 + 1e-6
+        turn = np.abs((th - prior.angle[seg] + np.pi) % (2 * np.pi) - np.pi)
+        assert np.degrees(turn).max() <= params.gps_angle_deg + 1e-6
+
+
+def test_gps_heading_orients_same_segment_labels(tmp_path, toy, solved):
+    """A (p, p) label (two façades of one building) has no over-view centre line; with GPS its pose
+    search is centred on the GPS heading, so a rectangular outline cannot be fitted turned by 90°
+    or 180°: the true self-loop labels get the true rotation and a low cost."""
+    graphs, _ = solved
+    scene = _scene(tmp_path / "gps", toy)
+    costs = DistanceMap()(graphs, toy.street, toy.overview, scene, NullObserver())
+    lab = true_labels(graphs, toy.truth)
+    j, k = graphs.street_edges[:, 0], graphs.street_edges[:, 1]
+    e = np.nonzero((lab >= 0) & (toy.truth[j] == toy.truth[k]))[0]
+    assert len(e) >= 3, "precondition: the toy has street edges between façades of one building"
+    turn = np.degrees(np.abs((costs.theta_rad[e, lab[e]] - toy.theta + np.pi) % (2 * np.pi) - np.pi))
+    assert np.all(turn < 5.0)
+    assert np.median(costs.cost[e, lab[e]]) < 0.5
+
+
 def test_gps_with_too_few_fixes_warns_and_prunes_nothing(tmp_path):
     small = make_toy((2, 2), seed=4)
     graphs = KnnGraph()(small.street, small.overview, NullObserver())

@@ -160,9 +160,13 @@ def _angle_ranges(anchors: Anchors, seg: np.ndarray, centre: np.ndarray, half: n
 def hypotheses(atlas: CropAtlas, A: np.ndarray, px0: np.ndarray, anchors: Anchors, pairs: Pairs,
                s_anchor: np.ndarray, s_dir: np.ndarray, usable: np.ndarray, edges: np.ndarray,
                s_mid: np.ndarray, o_mid: np.ndarray, rot_window: np.ndarray, tol_px: float,
-               max_per_pair: int) -> tuple[np.ndarray, Pairs]:
+               max_per_pair: int, theta_prior: np.ndarray | None = None,
+               prior_window: float = np.pi) -> tuple[np.ndarray, Pairs]:
     """Anchored hypotheses of ``pairs`` (whose ``theta`` is the centre-line angle θ0, ``window_px``
     the offset window, and ``rot_window`` (P,) the allowed |θ - θ0|).
+
+    theta_prior (P,): an absolute heading per pair (NaN: none, e.g. from GPS); hypotheses turned
+    farther than ``prior_window`` from it are dropped before the best ``max_per_pair`` are kept.
 
     Returns (H,) the index of the pair each hypothesis belongs to, and the hypotheses as ``Pairs``
     (theta, pivot_px at the street-edge midpoint, zero offset)."""
@@ -190,6 +194,10 @@ def hypotheses(atlas: CropAtlas, A: np.ndarray, px0: np.ndarray, anchors: Anchor
         own, ia, delta = (np.concatenate([own, own[both]]), np.concatenate([ia, ia[both]]),
                           np.concatenate([delta, delta[both] + np.pi]))
         th = pairs.theta[pid][own] + delta
+        if theta_prior is not None:
+            tp = theta_prior[pid][own]
+            near = ~(np.abs(_wrap_pi(th - tp)) > prior_window)  # NaN prior: kept
+            own, ia, delta, th = own[near], ia[near], delta[near], th[near]
         c_, s_ = np.cos(th), np.sin(th)
         xa = anchors.xy[ia]
         mid_w = xa + _rot(c_, s_, v_mid[own])

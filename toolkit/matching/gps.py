@@ -21,11 +21,12 @@ from toolkit.types import StreetSegments
 @dataclass(frozen=True)
 class GpsPrior:
     """position: (S,2) predicted scene x, y of each street segment centroid; angle: (S,) rotation
-    (levelled street → scene) of the local fit; n_fixes: fixes used."""
+    (levelled street → scene) of the local fit; n_fixes: fixes used; sigma_m: their median σ."""
 
     position: np.ndarray
     angle: np.ndarray
     n_fixes: int
+    sigma_m: float = 10.0  # median stated accuracy of the fixes used (the default when none is given)
 
 
 def read_gps_csv(path: Path) -> tuple[list[str], np.ndarray, np.ndarray]:
@@ -102,4 +103,4 @@ def gps_prior(scene, street: StreetSegments, n_local: int = 100, default_sigma_m
     thr = np.maximum(3 * np.median(res, axis=1, keepdims=True), 3 * sig[nn])
     theta, t = rigid_fit_2d(src, dst, w * (res <= thr))
     pos = _apply(theta, t, cent) + origin
-    return GpsPrior(position=pos, angle=theta, n_fixes=int(hit.sum()))
+    return GpsPrior(position=pos, angle=theta, n_fixes=int(hit.sum()), sigma_m=float(np.median(sig)))

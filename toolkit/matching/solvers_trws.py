@@ -21,6 +21,7 @@ import numpy as np
 from toolkit.matching.mrf import MRF, conditional_scores, ranges
 from toolkit.matching.solvers_bp import MessagePlan, beliefs, build_plan, send
 from toolkit.matching.solvers_common import BestTracker, IterCallback, SolveResult
+from toolkit.matching.solvers_local import icm
 
 
 class ChainBound:
@@ -85,9 +86,14 @@ class ChainBound:
 
 
 def trws(mrf: MRF, max_iters: int = 100, patience: int = 3, energy_tol: float = 1e-9,
-         bound_tol: float = 1e-5, on_iter: IterCallback | None = None) -> SolveResult:
+         bound_tol: float = 1e-5, polish: bool = True, on_iter: IterCallback | None = None) -> SolveResult:
     """TRW-S (module doc). Stops when the gap closes, or when the energy has not changed for
-    ``patience`` iterations and the bound gained less than bound_tol (relative) in the last one."""
+    ``patience`` iterations and the bound gained less than bound_tol (relative) in the last one.
+
+    polish: finish with ICM started from the best labelling (never raises its energy): when the LP
+    relaxation is not tight the decoded labelling may miss single-node improvements. On the campus
+    scenes it changes little (≤ 0.01 of energies ~250); TRW-S then ends at or below loopy BP in
+    14 of 15 scene × source runs (bench/matching_seeds.py)."""
     n = mrf.n_nodes
     msg = np.zeros(int(mrf.msg_ptr[-1]))
     n_earlier = np.array([np.count_nonzero(mrf.msg_send[mrf.in_first[i]:mrf.in_first[i] + mrf.deg[i]] < i)
@@ -130,7 +136,12 @@ def trws(mrf: MRF, max_iters: int = 100, patience: int = 3, energy_tol: float = 
                 stalled and gained <= bound_tol * max(1.0, abs(bound))):
             converged = True
             break
-    return SolveResult(labels=tracker.best_labels, energy=tracker.best_energy, energy_trace=tracker.trace,
+    labels, energy = tracker.best_labels, tracker.best_energy
+    if polish:
+        polished = icm(mrf, init=labels)
+        if polished.energy < energy:
+            labels, energy = polished.labels, polished.energy
+    return SolveResult(labels=labels, energy=energy, energy_trace=tracker.trace,
                        bound_trace=bounds, iterations=it, converged=converged,
                        lower_bound=max(bounds) if bounds else None)
 
