@@ -18,7 +18,7 @@ it cannot be computed, and ``notes`` says why)::
       error_3d | horizontal: {mean_m, median_m, p90_m, p95_m, max_m, n},
       within_m: {"0.5" | "1" | "2": {horizontal: fraction, 3d: fraction}},
       histogram: {edges_m: [.., null], counts}}      # 3D errors; the last bin is "beyond cutoff_m"
-    matching: null | {precision, recall, n_street_segments, n_matched, n_correct,
+    matching: null | {precision, recall, precision_iou, recall_iou, n_street_segments, n_matched, n_correct,
                       n_with_counterpart, n_overview_segments, n_overview_with_building}
     cameras: null | {                    # camera centres vs truth/cameras.txt, matched by image name
       source: "adjusted" | "registered", # which poses the centre_error_* fields describe
@@ -33,11 +33,12 @@ it cannot be computed, and ``notes`` says why)::
 
 The runner adds ``warnings``; timings go to ``timings.json`` so metrics.json is reproducible. ``Metrics.per_point_error_m`` is the (N,) 3D error of
 every street point when truth exists. Segment-match scoring maps each street segment to the true
-building most of its points lie on (truth/street_labels.npy; none when most are ground/clutter),
-and each over-view segment to the true footprint (truth/buildings.geojson rasterised on the
-over-view grid) it overlaps with IoU ≥ 0.5. A match is correct when both map to the same building;
-precision = correct / matched, recall = correct / street segments whose building has an over-view
-segment.
+building most of its points lie on (truth/street_labels.npy; none when most are ground/clutter).
+A match is correct when the over-view segment covers at least half of that building's true
+footprint (truth/buildings.geojson rasterised on the over-view grid), so a segment merging several
+buildings is the counterpart of each; precision = correct / matched, recall = correct / street
+segments whose building some over-view segment covers. ``precision_iou``/``recall_iou`` use the
+stricter one-to-one rule (the over-view segment's best-IoU building, IoU ≥ 0.5, must be it).
 """
 
 from __future__ import annotations

@@ -321,3 +321,27 @@ def test_scene_without_truth_or_reference(tmp_path):
     m = Chamfer()(reg, sc, NullObserver())
     assert m.values["chamfer"] is None and m.values["truth"] is None and m.per_point_error_m is None
     assert len(m.values["notes"]) == 2
+
+
+def test_match_to_a_merged_overview_segment_counts_for_every_building_it_covers():
+    """One over-view segment drawn around two buildings (a merged OSM outline) is the counterpart of
+    both; the strict one-to-one IoU rule (precision_iou) calls the second building's match wrong."""
+    grid = _grid()
+    ids = np.array([7, 9])
+    geoms = [box(1002, 2002, 1012, 2012), box(1012, 2002, 1020, 2012)]  # 10×10 and 8×10 px, touching
+    labels = np.full((40, 40), -1, np.int32)
+    labels[40 - 12:40 - 2, 2:20] = 0             # the merged outline around both
+    labels[40 - 32:40 - 22, 22:32] = 1           # a segment with no building
+    overview = OverviewSegments(grid=grid, label_image=labels, ids=np.array([11, 12]),
+                                boundary_px=(np.zeros((1, 2), np.int32),) * 2,
+                                centroids=np.array([[1011.0, 2007], [1027, 2027]]), polygons=(None, None),
+                                ground_height=np.zeros(2), ground_normal=np.tile([0.0, 0, 1], (2, 1)))
+    true_labels = np.r_[np.full(50, 7), np.full(50, 9), np.full(50, 9)].astype(np.int32)
+    point_labels = np.repeat(np.arange(3), 50).astype(np.int32)
+    street = _street(150, point_labels, 3)
+    sm = T.segment_match_scores(_matches([0, 0, 1]), street, overview, true_labels, ids, geoms)
+    assert sm["n_matched"] == 3 and sm["n_correct"] == 2          # seg 2 → the empty segment is wrong
+    assert sm["precision"] == pytest.approx(2 / 3) and sm["recall"] == pytest.approx(2 / 3)
+    # strict rule: the merged segment belongs to building 7 only (IoU 100/180 ≥ 0.5; 9 has 80/180)
+    assert sm["precision_iou"] == pytest.approx(1 / 3) and sm["recall_iou"] == pytest.approx(1.0)
+    assert list(sm["_per_segment"]["correct"]) == [True, True, False]
