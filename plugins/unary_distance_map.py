@@ -15,9 +15,10 @@ length_tolerance_fraction·len + centroid_slack·(ρ_p + ρ_q)`` (ρ: the larges
 distance, which bounds how far a façade centre can sit from its building centre); each façade must
 fit on its segment (extent ≤ diameter + tolerance). With street/gps.csv: the edge midpoint must land
 within the GPS radius (+ the offset window) of its GPS-implied position, and the final pose must put
-both centres within that radius and turn within gps_angle_deg of the local GPS fit; the pose search
-itself only tries rotations within gps_angle_deg of the GPS heading, and ``gps_cost_weight`` adds a
-soft penalty growing with the distance from the GPS-implied positions.
+both centres within their radii (per segment: wider where the local GPS fit's residual is large)
+and turn within gps_angle_deg of the local GPS fit; the pose search itself only tries rotations
+within gps_angle_deg of the GPS heading, and ``gps_cost_weight`` adds a soft penalty growing with
+the distance from the GPS-implied positions (relative to each segment's radius).
 
 Search, vectorised over all candidate pairs (``search``):
 - ``window`` (the paper): every rotation of ±rotation_window_deg × a coarse offset grid over the
@@ -131,8 +132,9 @@ class DistanceMap(Stage):
             None, gt=0, description="With street/gps.csv: prune candidates placing a segment centre farther "
                                     "than this from its GPS-implied position. None: gps_radius_sigmas·σ + "
                                     "gps_radius_margin_m, σ the median sigma_m of the fixes (10 m when the "
-                                    "file gives none); 3 m fixes → 20 m. The campus scenes' local GPS fits "
-                                    "put segments within 13 m of the truth; at 60 m repeated façades of the "
+                                    "file gives none; raised per segment to its local fit's residual, see "
+                                    "gps_radius_fit_sigmas); 3 m fixes → 20 m. The campus scenes' local GPS "
+                                    "fits put segments within 13 m of the truth; at 60 m repeated façades of the "
                                     "next buildings along the street stay candidates.")
         gps_cost_weight: float = Field(
             0.1, ge=0, description="With GPS: add weight·(d / GPS radius)² to the raw chamfer cost, d the larger "
@@ -141,6 +143,13 @@ class DistanceMap(Stage):
                                    "It tells repeated façades of neighbouring buildings apart. 0: hard "
                                    "pruning only.")
         gps_radius_sigmas: float = Field(5.0, gt=0, description="GPS radius in fix σ when gps_radius_m is None.")
+        gps_radius_fit_sigmas: float | None = Field(
+            3.0, gt=0, description="When gps_radius_m is None: a segment's radius is at least this many times "
+                                   "the RMS residual (m) of its local GPS fit (+ gps_radius_margin_m), so it "
+                                   "widens where the fit itself shows that a rigid motion does not explain the "
+                                   "fixes (SfM drift, biased fixes; campus seed 2: residuals ~20 m, predicted "
+                                   "positions 20-50 m off, i.e. up to ~2.3 residuals). None: one radius from "
+                                   "σ for every segment.")
         gps_radius_margin_m: float = Field(
             5.0, ge=0, description="Added to the σ-based GPS radius (pose error of the candidate itself).")
         gps_angle_deg: float | None = Field(
@@ -206,13 +215,12 @@ class DistanceMap(Stage):
             from toolkit.matching.gps import gps_prior
 
             prior = gps_prior(scene, street, n_local=p.gps_fit_fixes, warn=obs.warn)
-        gps_radius = p.gps_radius_m
-        if prior is not None and gps_radius is None:
-            gps_radius = p.gps_radius_sigmas * prior.sigma_m + p.gps_radius_margin_m
+        seg_radius = self._gps_radii(prior, len(s_cent)) if prior is not None else None
         if prior is not None:
             # the edge midpoint lands within the offset window of the over-view midpoint
             g_mid = (prior.position[j[pe]] + prior.position[k[pe]]) / 2
-            ok = np.linalg.norm(o_mid[pl] + o_world - g_mid, axis=1) <= gps_radius + window
+            edge_radius = np.maximum(seg_radius[j[pe]], seg_radius[k[pe]])
+            ok = np.linalg.norm(o_mid[pl] + o_world - g_mid, axis=1) <= edge_radius + window
             pe, pl, theta0, window = pe[ok], pl[ok], theta0[ok], window[ok]
         # GPS heading of each pair (circular mean of its two segments' local fits), NaN without GPS.
         # The search only tries rotations within gps_angle_deg of it: the final pose test would
@@ -295,10 +303,11 @@ class DistanceMap(Stage):
         t_hat = (f_pivot + f_off - px0) @ A_inv.T - rot_m + o_world
         if prior is not None:  # the exact test on the final pose, then the soft GPS term
             dist, turn = self._gps_offsets(prior, f_theta, t_hat, s_cent, j[pe], k[pe])
-            bad = dist.max(axis=1) > gps_radius
+            rel = dist / np.stack([seg_radius[j[pe]], seg_radius[k[pe]]], axis=1)
+            bad = rel.max(axis=1) > 1.0
             if p.gps_angle_deg is not None:
                 bad |= turn.max(axis=1) > np.deg2rad(p.gps_angle_deg)
-            f_cost = f_cost + p.gps_cost_weight * (dist.max(axis=1) / gps_radius) ** 2
+            f_cost = f_cost + p.gps_cost_weight * rel.max(axis=1) ** 2
             f_cost[bad] = np.inf
         # pruned stays +inf (np.clip would turn it into 1, a tie with null that greedy then picks)
         cost[pe, pl] = np.where(np.isfinite(f_cost), np.clip(f_cost / p.raw_cost_at_null, 0.0, 1.0), np.inf)
@@ -397,6 +406,16 @@ class DistanceMap(Stage):
         keep &= ext[j][:, None] <= diam[lp[:, 0]][None, :] + p.extent_tolerance_m
         keep &= ext[k][:, None] <= diam[lp[:, 1]][None, :] + p.extent_tolerance_m
         return keep
+
+    def _gps_radii(self, prior, n_seg: int) -> np.ndarray:
+        """(S,) GPS radius (m) of each street segment (gps_radius_m, or σ- and fit-based; see the Params)."""
+        p = self.params
+        if p.gps_radius_m is not None:
+            return np.full(n_seg, p.gps_radius_m)
+        radius = np.full(n_seg, p.gps_radius_sigmas * prior.sigma_m)
+        if p.gps_radius_fit_sigmas is not None and prior.fit_rms_m is not None:
+            radius = np.maximum(radius, p.gps_radius_fit_sigmas * prior.fit_rms_m)
+        return radius + p.gps_radius_margin_m
 
     @staticmethod
     def _gps_offsets(prior, theta, t, s_cent, sj, sk) -> tuple[np.ndarray, np.ndarray]:

@@ -107,9 +107,18 @@ def test_vote_majority_null_and_transform():
     c, s = np.cos(theta[0, 0]), np.sin(theta[0, 0])
     np.testing.assert_allclose(T2d[0], [[c, -s, 0.0], [s, c, 1.0], [0, 0, 1]])
     np.testing.assert_allclose(T2d[3], np.eye(3))
-    # null votes outnumbering the winner make the segment null
-    match, *_ = vote(graphs, costs, np.array([0, 8, 8, 6]))
-    assert match[0] == -1 and match[1] == 1
+    # null votes outnumbering the winner make the segment null: edges 0 and 1 are null, their other
+    # segments (1, 2) are matched through edge 3, so both nulls count against segment 0's one vote
+    match, *_ = vote(graphs, costs, np.array([8, 8, 4, 6]))
+    np.testing.assert_array_equal(match, [-1, 1, 2, 3])
+    # a null edge to a segment with no non-null vote at all (3 below) is explained by that segment
+    # and does not count: segment 0 keeps its match (1 vote against 1 counted null)
+    match, conf, *_ = vote(graphs, costs, np.array([0, 8, 8, 6]))
+    assert match[0] == 0 and match[1] == 1 and match[3] == -1
+    assert conf[0] == pytest.approx(1 / 3)
+    # with edge 3 null as well, segments 2 and 3 have no vote: both nulls of segment 0 are explained
+    match, *_ = vote(graphs, costs, np.array([0, 8, 8, 8]))
+    assert match[0] == 0 and match[2] == -1 and match[3] == -1
 
 
 def _flip_street_edges(p, flip):

@@ -259,6 +259,38 @@ def test_gps_heading_orients_same_segment_labels(tmp_path, toy, solved):
     assert np.median(costs.cost[e, lab[e]]) < 0.5
 
 
+def test_gps_radius_widens_where_the_local_fit_residual_is_large(tmp_path, toy):
+    """Fixes that no rigid motion explains (here: every other fix shifted 30 m, as biased fixes or
+    a bent SfM frame would be) give a large local-fit residual; the radius grows to
+    gps_radius_fit_sigmas residuals (+ margin) there, and stays gps_radius_sigmas·σ + margin when that
+    is off. Consistent fixes (2 m noise,
+    σ = 3 m) leave the σ-based radius."""
+    import dataclasses
+
+    from toolkit.matching.gps import gps_prior
+
+    clean = gps_prior(_scene(tmp_path / "clean", toy), toy.street)
+    assert clean.fit_rms_m is not None and clean.fit_rms_m.shape == (len(toy.street),)
+    assert np.all(3.0 * clean.fit_rms_m < 5.0 * 3.0)
+    stage, fixed = DistanceMap(), DistanceMap(DistanceMap.Params(gps_radius_fit_sigmas=None))
+    base = 5.0 * 3.0 + 5.0
+    assert np.allclose(stage._gps_radii(clean, len(toy.street)), base)
+
+    scene = _scene(tmp_path / "bent", toy)
+    lines = scene.files.gps.read_text().splitlines()
+    rows = [ln.split(",") for ln in lines[1:]]
+    for r in rows[::2]:
+        r[2] = f"{float(r[2]) + 30.0 / 111_000:.9f}"  # 30 m north
+    scene.files.gps.write_text("\n".join([lines[0]] + [",".join(r) for r in rows]) + "\n")
+    bent = gps_prior(scene, toy.street)
+    assert np.all(bent.fit_rms_m > 10.0)
+    radii = stage._gps_radii(bent, len(toy.street))
+    assert np.allclose(radii, 3.0 * bent.fit_rms_m + 5.0) and np.all(radii > base + 9.0)
+    assert np.allclose(fixed._gps_radii(bent, len(toy.street)), base)
+    explicit = DistanceMap(DistanceMap.Params(gps_radius_m=12.0))
+    assert np.allclose(explicit._gps_radii(dataclasses.replace(bent), len(toy.street)), 12.0)
+
+
 def test_gps_with_too_few_fixes_warns_and_prunes_nothing(tmp_path):
     small = make_toy((2, 2), seed=4)
     graphs = KnnGraph()(small.street, small.overview, NullObserver())

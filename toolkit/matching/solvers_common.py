@@ -3,7 +3,12 @@
 Voting (METHOD.md §6): each street segment collects, from every incident conjugate node (street
 edge), the over-view segment that edge's label maps it to (null when the label is null). The most
 voted over-view segment wins (ties: lower mean unary cost); the segment is null when it has no
-incident edge or when null votes strictly outnumber the winner. confidence = winner votes / all
+incident edge or when the null votes that count strictly outnumber the winner. A null edge (s, k)
+counts against s only when k has a non-null vote on some edge: when every edge of k is null, k has
+no counterpart in this labelling (a tree, a wall the over-view lacks) and the null edge is explained
+by k, not by s. Counting those nulls left a façade with one or two matched neighbours unmatched
+beside its unmatchable ones (loopy BP on the 5 campus seeds × 3 sources: mean recall 0.916 → 0.922,
+mean precision unchanged at 0.971). confidence = winner votes / all
 incident votes (0 when null). T2d is the transform of the lowest-cost agreeing edge: transforms of
 different edges have different rotation centres, so averaging t would mix frames. cost = mean unary
 cost of the agreeing edges (1 when null).
@@ -115,7 +120,9 @@ def vote(graphs: ConjugateGraphs, costs: DataCosts, edge_label: np.ndarray
     ucost = np.asarray(costs.cost)[edge, lab]
 
     total = np.bincount(seg, minlength=n_seg)
-    nulls = np.bincount(seg[is_null], minlength=n_seg)
+    other = se[edge, 1 - side]
+    has_vote = np.bincount(seg[~is_null], minlength=n_seg) > 0
+    nulls = np.bincount(seg[is_null & has_vote[other]], minlength=n_seg)  # nulls explained by s (module doc)
     match = np.full(n_seg, -1, dtype=np.int64)
     conf = np.zeros(n_seg)
     mcost = np.ones(n_seg)
