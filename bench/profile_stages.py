@@ -1,22 +1,94 @@
-"""Per-stage profile of one run: which stage dominates (table of seconds and shares).
+"""Per-stage profile of one run: seconds, share and peak memory of each stage (which one dominates).
 
-usage: python bench/profile_stages.py [preset] [recipe]   (default: campus dsm.yaml)
+Peak memory per stage: the kernel's high-water mark (VmHWM) is reset before each stage
+(``/proc/self/clear_refs`` = 5), read after it; "rss in" is the resident size the stage started
+from (what earlier stages' outputs and caches hold). The writing of the outputs (registered.ply,
+report) is measured as a last row ``outputs`` (its seconds are the run's total minus the stages).
+CPU seconds (user + system, all threads) are given beside wall seconds: on a shared machine they
+drift less with the load.
+
+usage: python bench/profile_stages.py [preset | scene dir] [recipe]   (default: campus dsm.yaml)
 """
 
 from __future__ import annotations
 
+import resource
 import sys
+import time
+from pathlib import Path
 
-from _common import REPO, peak_rss_mb, run_pipeline, scene
+from _common import REPO, scene
+
+from toolkit.observe import NullObserver
+
+
+def _status_mb(field: str) -> float:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def _cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+def _reset_peak() -> None:
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:  # not Linux or not permitted: peaks then accumulate from the start
+        pass
+
+
+class MemoryObserver(NullObserver):
+    """Records, per stage, the resident size at its start and its peak (VmHWM reset at each start)."""
+
+    def __init__(self, live: bool = True) -> None:
+        super().__init__()
+        self.live = live
+        self.rss_in: dict[str, float] = {}
+        self.peak: dict[str, float] = {}
+        self.cpu: dict[str, float] = {}
+
+    def stage_start(self, step: str, stage_key: str) -> None:
+        super().stage_start(step, stage_key)
+        self.rss_in[step] = _status_mb("VmRSS")
+        _reset_peak()
+        self.cpu[step] = _cpu()
+
+    def stage_end(self, step: str, seconds: float, output) -> None:
+        super().stage_end(step, seconds, output)
+        self.cpu[step] = _cpu() - self.cpu[step]
+        self.peak[step] = _status_mb("VmHWM")
+        _reset_peak()
+        if self.live:
+            print(f"  {step:10s} {seconds:8.2f} s ({self.cpu[step]:6.2f} s CPU)  rss in {self.rss_in[step]:6.0f} MB  peak {self.peak[step]:6.0f} MB",
+                  flush=True)
+
+
+def profile(root: Path, recipe: str, out: Path):
+    from toolkit.runner import run_recipe
+
+    obs = MemoryObserver()
+    t0, c0 = time.perf_counter(), _cpu()
+    res = run_recipe(REPO / "recipes" / recipe, scene=root, out=out, overwrite=True, rerun=False, observer=obs)
+    seconds, cpu = time.perf_counter() - t0, _cpu() - c0
+    rows = [(step, s, obs.cpu[step], obs.rss_in[step], obs.peak[step]) for step, s in res.timings.items()]
+    rows.append(("outputs", seconds - sum(res.timings.values()), cpu - sum(obs.cpu.values()),
+                 _status_mb("VmRSS"), _status_mb("VmHWM")))
+    return seconds, cpu, rows
 
 
 def main(preset: str = "campus", recipe: str = "dsm.yaml") -> None:
-    root = scene(preset)
-    seconds, res = run_pipeline(recipe, root, REPO / "out" / f"bench-profile-{preset}")
-    print(f"{recipe} on {preset}: {seconds:.1f} s total, peak RSS {peak_rss_mb():.0f} MB")
-    print(f"{'step':10s} {'seconds':>9s} {'share':>7s}")
-    for step, s in sorted(res.timings.items(), key=lambda kv: -kv[1]):
-        print(f"{step:10s} {s:9.2f} {100 * s / seconds:6.1f}%")
+    root = Path(preset) if Path(preset, "scene.yaml").is_file() else scene(preset)
+    seconds, cpu, rows = profile(root, recipe, REPO / "out" / f"bench-profile-{root.name}")
+    # ru_maxrss only sees the high-water mark since the last reset: the run's peak is the stages' max
+    print(f"{recipe} on {root.name}: {seconds:.1f} s total ({cpu:.1f} s CPU), "
+          f"peak RSS {max(r[4] for r in rows):.0f} MB (highest stage peak)")
+    print(f"{'step':10s} {'seconds':>9s} {'share':>7s} {'CPU s':>8s} {'CPU share':>10s} {'rss in MB':>10s} {'peak MB':>9s}")
+    for step, s, c, rss_in, peak in sorted(rows, key=lambda r: -r[1]):
+        print(f"{step:10s} {s:9.2f} {100 * s / seconds:6.1f}% {c:8.2f} {100 * c / cpu:9.1f}% {rss_in:10.0f} {peak:9.0f}")
 
 
 if __name__ == "__main__":

@@ -12,7 +12,8 @@ Steps (helpers in ``toolkit/street``):
 4. Region growing (Rabbani) as connected components of the façade kNN graph (union-find pass +
    scipy.sparse.csgraph), bends split (``growing.py``); walls meeting at a corner and pieces of
    one occluded wall merged when they reach the same height (``merge.py``); segments under ``min_diameter_m`` wide, ``min_height_m`` high or
-   ``min_points`` dropped. Segment indices are ordered by decreasing size; ids = indices.
+   ``min_points`` dropped; leftover façade points absorbed by an adjacent segment whose normal agrees
+   (``absorb.py``). Segment indices are ordered by decreasing size; ids = indices.
 5. Ground (normal within ``ground_angle_deg`` of vertical) and every other point carried by the
    nearest segment within ``association_radius_m`` (2D); per-segment ground height and normal.
 
@@ -35,6 +36,7 @@ from toolkit.errors import StageError
 from toolkit.observe import DebugLines, DebugPoints
 from toolkit.scene import load_points
 from toolkit.stage import Stage, StageParams
+from toolkit.street.absorb import absorb_leftovers
 from toolkit.street.associate import ground_statistics, nearest_segment
 from toolkit.street.facade import facade_points
 from toolkit.street.growing import group_min_max, grow_regions
@@ -80,6 +82,15 @@ class RegionGrowingParams(StageParams):
     min_height_m: float = Field(
         2.5, ge=0, description="drop segments whose points span less than this vertically (cars, fences)")
     min_points: int = Field(30, ge=1, description="drop segments with fewer analysis points")
+    absorb_hops: int = Field(
+        3, ge=0, description="leftover façade points (rough, or in dropped fragments) join the segment of a "
+                             "neighbour whose normal agrees, through up to this many graph links (0 = off; "
+                             "campus wall recall 0.900 → 0.922 at 3, 0.951 at 10 with 20°, but 10/20° moved "
+                             "the registration's 3D median error 0.213 → 0.237 m, 3/10° 0.218 m)")
+    absorb_link_m: float = Field(
+        1.0, gt=0, description="absorption follows graph links no longer than this (3D, metres)")
+    absorb_angle_deg: float = Field(
+        10.0, gt=0, lt=90, description="max angle between the normals of a leftover point and its absorbing neighbour")
     association_radius_m: float = Field(
         50.0, gt=0, description="points farther than this (2D) from every segment get carrier -1")
     voxel_m: float = Field(0.3, ge=0, description="voxel size of the analysis cloud (0 = every point); "
@@ -139,6 +150,14 @@ class RegionGrowing(Stage):
         After a call, ``self.timings`` (seconds per step) and ``self.vertical`` (the vertical
         estimate) describe it, for benchmarks.
         """
+        # The stage's BLAS calls are tall-skinny (N,3) @ (3,3) products: multi-threaded OpenBLAS
+        # gains nothing on them and, on a loaded machine, loses ~25x to thread synchronisation.
+        from threadpoolctl import threadpool_limits
+
+        with threadpool_limits(1, user_api="blas"):
+            return self._segment(points, obs)
+
+    def _segment(self, points: np.ndarray, obs: Any) -> StreetSegments:
         p: RegionGrowingParams = self.params  # type: ignore[assignment]
         clock = _Clock()
         pts, finite = _valid_points(points, obs)
@@ -230,7 +249,12 @@ class RegionGrowing(Stage):
                               p.smooth_angle_deg, p.seed_curvature_max, azimuth, p.bend_split_angle_deg)
         labels = merge_segments(fac_xyz[:, :2], fac_xyz[:, 2], azimuth, labels, p.merge_contact_m, p.merge_gap_m,
                                 p.merge_height_tol_m, p.merge_min_corner_deg, p.min_points)
-        return _drop_small(relabel_by_size(labels), fac_xyz, p.min_diameter_m, p.min_height_m, p.min_points)
+        labels = _drop_small(relabel_by_size(labels), fac_xyz, p.min_diameter_m, p.min_height_m, p.min_points)
+        if p.absorb_hops == 0:
+            return labels
+        labels = absorb_leftovers(labels, facade.graph, facade.index, n_points, fac_xyz, fac_normals,
+                                  p.absorb_angle_deg, p.absorb_link_m, p.absorb_hops)
+        return relabel_by_size(labels)
 
     def _vertical(self, points: np.ndarray, normals: np.ndarray) -> Vertical:
         p: RegionGrowingParams = self.params  # type: ignore[assignment]

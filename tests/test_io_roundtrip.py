@@ -202,3 +202,47 @@ def test_last_image_without_observations_reads(tmp_path: Path):
     write_model(m, tmp_path / "m")
     assert (tmp_path / "m/images.txt").read_text().endswith("\n\n")
     _assert_same(m, read_model(tmp_path / "m"))
+
+
+def test_ply_streams_in_chunks(tmp_path: Path, monkeypatch):
+    """Records are read and written a bounded chunk at a time; the bytes and values stay the same."""
+    import toolkit.io.cloud as cloud
+
+    rng = np.random.default_rng(3)
+    xyz = rng.normal(size=(1001, 3)) * 1000 + [431000.0, 4428000.0, 200.0]
+    rgb = rng.integers(0, 256, size=(1001, 3)).astype(np.uint8)
+    seg = rng.integers(-2, 50, size=1001).astype(np.int32)
+    write_ply(tmp_path / "whole.ply", xyz, colors=rgb, extra={"segment": seg})
+    monkeypatch.setattr(cloud, "CHUNK_BYTES", 7 * 31)  # 7 records of 31 bytes per chunk: 143 chunks
+    write_ply(tmp_path / "chunked.ply", xyz, colors=rgb, extra={"segment": seg})
+    assert (tmp_path / "whole.ply").read_bytes() == (tmp_path / "chunked.ply").read_bytes()
+    back, back_rgb = read_points(tmp_path / "chunked.ply", with_colors=True)
+    np.testing.assert_array_equal(back, xyz)
+    np.testing.assert_array_equal(back_rgb, rgb)
+    raw = (tmp_path / "chunked.ply").read_bytes()
+    (tmp_path / "cut.ply").write_bytes(raw[:-40])
+    with pytest.raises(SceneError, match="truncated \\(999 of 1001"):
+        read_points(tmp_path / "cut.ply")
+
+
+def test_laz_read_in_chunks(tmp_path: Path):
+    """LAS/LAZ go through laspy's chunk iterator: many chunks give the same points and colours."""
+    import laspy
+
+    from toolkit.io.cloud import _read_las
+
+    rng = np.random.default_rng(2)
+    pts = rng.uniform(0, 100, size=(1000, 3)) + [431000, 4428000, 200]
+    rgb = rng.integers(0, 65536, size=(1000, 3)).astype(np.uint16)
+    hdr = laspy.LasHeader(point_format=3, version="1.2")
+    hdr.offsets, hdr.scales = pts.min(0), [0.001] * 3
+    las = laspy.LasData(hdr)
+    las.x, las.y, las.z = pts[:, 0], pts[:, 1], pts[:, 2]
+    las.red, las.green, las.blue = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+    las.write(tmp_path / "c.laz")
+    whole_xyz, whole_rgb = _read_las(tmp_path / "c.laz")
+    xyz, col = _read_las(tmp_path / "c.laz", chunk_points=64)  # 16 chunks
+    np.testing.assert_array_equal(xyz, whole_xyz)
+    np.testing.assert_allclose(xyz, pts, atol=1e-3)
+    np.testing.assert_array_equal(col, whole_rgb)
+    np.testing.assert_array_equal(col, (rgb >> 8).astype(np.uint8))

@@ -8,6 +8,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
 
 from toolkit.errors import StageError
+from toolkit.street.absorb import absorb_leftovers
 from toolkit.street.associate import ground_statistics, group_median, nearest_segment
 from toolkit.street.growing import components, grow_regions
 from toolkit.street.merge import merge_segments
@@ -172,6 +173,35 @@ def _wall(rng, start, end, height, n):
     z[:20] = height  # the wall top is seen
     d = np.asarray(end, float) - start
     return xy, z, np.full(n, np.arctan2(d[0], -d[1]))
+
+
+def test_absorb_leftovers_follows_agreeing_short_links_only():
+    """A wall row x = 0..19 (0.3 m apart): points 0-9 in segment 0, fragment 10-14 left over with the
+    wall's normal, 15-16 turned 60°, 17-19 beyond a 2 m gap. Graph: each point's 2 nearest on the row."""
+    from scipy.spatial import cKDTree
+
+    x = np.concatenate([np.arange(17) * 0.3, 16 * 0.3 + 2.0 + np.arange(3) * 0.3])
+    xyz = np.column_stack([x, np.zeros(20), np.full(20, 3.0)])
+    normals = np.tile([0.0, 1.0, 0.0], (20, 1))
+    normals[15:17] = [np.sin(np.radians(60)), np.cos(np.radians(60)), 0.0]
+    _, nn = cKDTree(xyz).query(xyz, k=3)
+    graph = nn[:, 1:].astype(np.int32)
+    labels = np.full(20, -1, np.int32)
+    labels[:10] = 0
+    index = np.arange(20, dtype=np.int32)
+    out = absorb_leftovers(labels, graph, index, 20, xyz, normals, 20.0, 1.0, hops=10)
+    assert out[:15].tolist() == [0] * 15  # the agreeing fragment, hop by hop
+    assert out[15:].tolist() == [-1] * 5  # turned normals stop it; the gap is longer than a link
+    assert absorb_leftovers(labels, graph, index, 20, xyz, normals, 20.0, 1.0, hops=2)[:15].tolist() \
+        == [0] * 12 + [-1] * 3  # two links reach two points further
+    assert absorb_leftovers(labels, graph, index, 20, xyz, normals, 20.0, 1.0, hops=0).tolist() == labels.tolist()
+    normals[15:17] = normals[0]  # now agreeing: absorbed up to the gap only
+    _, nn = cKDTree(xyz).query(xyz, k=4)  # 3 neighbours: point 17 is linked to 16 across the gap
+    graph = nn[:, 1:].astype(np.int32)
+    out = absorb_leftovers(labels, graph, index, 20, xyz, normals, 20.0, 1.0, hops=10)
+    assert out.tolist() == [0] * 17 + [-1] * 3
+    out = absorb_leftovers(labels, graph, index, 20, xyz, normals, 20.0, 2.5, hops=10)
+    assert out.tolist() == [0] * 20
 
 
 def test_merge_at_corners_joins_one_building_only():

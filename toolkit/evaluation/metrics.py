@@ -81,14 +81,16 @@ def mutual_nn_chamfer(a: np.ndarray, b: np.ndarray, cutoff_m: float) -> ChamferR
     a0, b0 = a - origin, b - origin
     # An upper bound on the query changes nothing: a pair beyond the cutoff is dropped anyway, and
     # b_j's nearest neighbour in a is never farther than a_i, which is within the cutoff.
-    d_ab, j = cKDTree(b0).query(a0, k=1, distance_upper_bound=cutoff_m)
+    # Unbalanced trees build ~1.3x faster and query as fast; queries use both cores.
+    tree_args = dict(balanced_tree=False, compact_nodes=False)
+    d_ab, j = cKDTree(b0, **tree_args).query(a0, k=1, distance_upper_bound=cutoff_m, workers=-1)
     has = np.isfinite(d_ab)
     i_idx = np.nonzero(has)[0]
     j_idx = j[has]
     if len(i_idx) == 0:
         return ChamferResult(np.zeros((0, 2), np.int64), np.zeros(0), len(a), len(b))
     uniq_j, inverse = np.unique(j_idx, return_inverse=True)
-    _, i_back = cKDTree(a0).query(b0[uniq_j], k=1)
+    _, i_back = cKDTree(a0, **tree_args).query(b0[uniq_j], k=1, workers=-1)
     mutual = i_back[inverse] == i_idx
     pairs = np.column_stack([i_idx[mutual], j_idx[mutual]]).astype(np.int64)
     return ChamferResult(pairs, d_ab[has][mutual], len(a), len(b))
@@ -105,10 +107,17 @@ def error_stats(errors: np.ndarray) -> dict:
             "max_m": _f(e.max()), "n": len(e)}
 
 
-def point_errors(estimated: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(3D error, horizontal error) per row, metres."""
-    diff = np.asarray(estimated, np.float64) - np.asarray(truth, np.float64)
-    return np.linalg.norm(diff, axis=1), np.linalg.norm(diff[:, :2], axis=1)
+def point_errors(estimated: np.ndarray, truth: np.ndarray, chunk: int = 1 << 20) -> tuple[np.ndarray, np.ndarray]:
+    """(3D error, horizontal error) per row, metres; ``chunk`` rows at a time (no (N,3) temporaries)."""
+    n = len(estimated)
+    e3, eh = np.empty(n), np.empty(n)
+    for s in range(0, n, chunk):
+        diff = np.asarray(estimated[s:s + chunk], np.float64) - np.asarray(truth[s:s + chunk], np.float64)
+        diff *= diff
+        horizontal = diff[:, 0] + diff[:, 1]
+        np.sqrt(horizontal + diff[:, 2], out=e3[s:s + chunk])
+        np.sqrt(horizontal, out=eh[s:s + chunk])
+    return e3, eh
 
 
 def point_error_summary(err3d: np.ndarray, err_h: np.ndarray) -> dict:

@@ -17,6 +17,7 @@ _PLY_TYPES = {
     "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
     "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
 }
+CHUNK_BYTES = 64 << 20  # binary PLY records are read and written this many bytes at a time
 
 
 def read_points(path: str | Path, with_colors: bool = False, allow_nonfinite: bool = False):
@@ -84,12 +85,8 @@ def _read_ply(path: Path):
             raise SceneError(f"{path}: PLY vertices lack x, y, z")
         if fmt in ("binary_little_endian", "binary_big_endian"):
             endian = "<" if fmt == "binary_little_endian" else ">"
-            dtype = np.dtype([(n, endian + t) for n, t in props])
-            raw = fh.read(dtype.itemsize * count)
-            if len(raw) < dtype.itemsize * count:
-                raise SceneError(f"{path}: PLY is truncated ({len(raw) // dtype.itemsize} of {count} vertices)")
-            data = np.frombuffer(raw, dtype=dtype, count=count)
-        elif fmt == "ascii":
+            return _read_binary_vertices(fh, path, np.dtype([(n, endian + t) for n, t in props]), count)
+        if fmt == "ascii":
             table = np.loadtxt(fh, max_rows=count, ndmin=2, dtype=np.float64)
             if table.shape[0] < count or table.shape[1] < len(names):
                 raise SceneError(f"{path}: PLY is truncated ({table.shape[0]} of {count} vertices)")
@@ -100,6 +97,32 @@ def _read_ply(path: Path):
     rgb = None
     if {"red", "green", "blue"} <= set(names):
         rgb = np.stack([np.asarray(data[c]) for c in ("red", "green", "blue")], axis=1).astype(np.uint8)
+    return xyz, rgb
+
+
+def _read_binary_vertices(fh, path: Path, dtype: np.dtype, count: int):
+    """Vertex records read straight into the (N,3) float64 / (N,3) uint8 outputs, CHUNK_BYTES at a
+    time: the temporary memory stays bounded whatever the cloud size (no whole-file byte copy)."""
+    import os
+
+    available = (os.fstat(fh.fileno()).st_size - fh.tell()) // dtype.itemsize
+    if available < count:  # checked before allocating: a corrupt count must not allocate gigabytes
+        raise SceneError(f"{path}: PLY is truncated ({available} of {count} vertices)")
+    names = set(dtype.names)
+    xyz = np.empty((count, 3), dtype=np.float64)
+    rgb = np.empty((count, 3), dtype=np.uint8) if {"red", "green", "blue"} <= names else None
+    step = max(1, CHUNK_BYTES // dtype.itemsize)
+    for start in range(0, count, step):
+        k = min(step, count - start)
+        raw = fh.read(dtype.itemsize * k)
+        if len(raw) < dtype.itemsize * k:
+            raise SceneError(f"{path}: PLY is truncated ({start + len(raw) // dtype.itemsize} of {count} vertices)")
+        rec = np.frombuffer(raw, dtype=dtype, count=k)
+        for axis, c in enumerate("xyz"):
+            xyz[start:start + k, axis] = rec[c]
+        if rgb is not None:
+            for axis, c in enumerate(("red", "green", "blue")):
+                rgb[start:start + k, axis] = rec[c]
     return xyz, rgb
 
 
@@ -173,23 +196,28 @@ def write_ply(path: str | Path, xyz: np.ndarray, colors: np.ndarray | None = Non
               extra: dict[str, np.ndarray] | None = None) -> None:
     """Binary little-endian PLY with double x, y, z (exact float64), optional uchar colours."""
     xyz = np.asarray(xyz, dtype=np.float64)
+    extra = {name: np.asarray(arr) for name, arr in (extra or {}).items()}
     fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
     if colors is not None:
+        colors = np.asarray(colors, dtype=np.uint8)
         fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
-    for name, arr in (extra or {}).items():
-        fields.append((name, np.asarray(arr).dtype.newbyteorder("<").str))
-    data = np.empty(len(xyz), dtype=fields)
-    data["x"], data["y"], data["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-    if colors is not None:
-        c = np.asarray(colors, dtype=np.uint8)
-        data["red"], data["green"], data["blue"] = c[:, 0], c[:, 1], c[:, 2]
-    for name, arr in (extra or {}).items():
-        data[name] = arr
+    for name, arr in extra.items():
+        fields.append((name, arr.dtype.newbyteorder("<").str))
     rev = {v: k for k, v in _PLY_TYPES.items() if k in ("char", "uchar", "short", "ushort", "int", "uint", "float", "double")}
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(xyz)}"]
     for name, dt in fields:
         header.append(f"property {rev[np.dtype(dt).str.lstrip('<|>')]} {name}")
     header.append("end_header")
+    dtype = np.dtype(fields)
+    step = max(1, CHUNK_BYTES // dtype.itemsize)
     with open(path, "wb") as fh:
         fh.write(("\n".join(header) + "\n").encode("ascii"))
-        fh.write(data.tobytes())
+        for start in range(0, len(xyz), step):  # records built a chunk at a time: bounded memory
+            part = slice(start, start + step)
+            data = np.empty(len(xyz[part]), dtype=dtype)
+            data["x"], data["y"], data["z"] = xyz[part, 0], xyz[part, 1], xyz[part, 2]
+            if colors is not None:
+                data["red"], data["green"], data["blue"] = colors[part, 0], colors[part, 1], colors[part, 2]
+            for name, arr in extra.items():
+                data[name] = arr[part]
+            data.tofile(fh)
