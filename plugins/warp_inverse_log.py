@@ -7,7 +7,9 @@ d ≤ 1 m. Rotations are averaged as quaternions (principal eigenvector), transl
 point itself (``toolkit.warp.blend``). Points without a valid carrier segment are anchored on the
 nearest valid segment: every input point is moved, in input order. A camera is anchored on the
 segment it observes most (``toolkit.warp.apply``). Neighbours whose transform disagrees with the
-anchor's (another pass of the route after a loop) are left out of the blend.
+anchor's (another pass of the route after a loop) are left out of the blend, and a point captured on
+another pass of the route than its segment is re-anchored on a segment of its own pass
+(``toolkit.warp.passes``). The weights are evaluated once per ``weight_cell_m`` cell (speed).
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from pydantic import Field
 
 from toolkit.stage import Stage, StageParams
 from toolkit.types import Registration, Scene, SegmentTransforms, StreetSegments
-from toolkit.warp.apply import warp_scene
+from toolkit.warp.apply import PassCheck, warp_scene
 
 
 class InverseLog(Stage):
@@ -28,10 +30,13 @@ class InverseLog(Stage):
 
     class Params(StageParams):
         neighbours_k: int = Field(
-            16, ge=1, le=64,
-            description="Valid neighbouring segments blended with a point's own. The paper's graph uses K = 4; "
-                        "16 measured best on campus seed 0 (3D p95: DSM 1.70 m at K = 4 → 1.17 m, OSM 1.72 → 1.25 m): "
-                        "more neighbours average out per-building errors of the over-view outlines.")
+            8, ge=1, le=64,
+            description="Valid neighbouring segments blended with a point's own. The paper's graph uses K = 4. Without "
+                        "the joint refine pass, K = 16 measured best on campus seed 0 (3D p95: DSM 1.70 m at K = 4 -> "
+                        "1.17 m): many neighbours averaged out per-building outline errors. With refine.exhaustive's "
+                        "joint pass (default) the transforms are already averaged over the route, and far neighbours "
+                        "only add their drift: K = 4/8/16 gave 3D p95 1.46/1.50/2.13 m (label map seed 1), "
+                        "1.19/1.08/1.12 m (OSM seed 2), 0.80/0.75/0.66 m (DSM seed 0).")
         min_distance_m: float = Field(
             1.5, gt=1.0,
             description="Distances are clamped to at least this (metres, > 1 since log d ≤ 0 for d ≤ 1 m): "
@@ -45,6 +50,21 @@ class InverseLog(Stage):
         neighbour_gap_ratio: float = Field(
             0.05, ge=0, description="... plus this fraction of their distance (keeps segments of another pass of "
                                     "the route, placed nearby by the drift, out of the blend).")
+        weight_cell_m: float = Field(
+            0.5, gt=0, le=5.0,
+            description="The weights of a point are those of the centre of its horizontal cell of this size (metres): "
+                        "one set of footprint distances and one blended transform per cell instead of per point "
+                        "(campus, 3.5 M points: 0.5 m moves points by < 0.03 m at the 99th percentile vs exact "
+                        "per-point weights; the footprints are themselves thinned to 1 m).")
+        pass_gap_m: float | None = Field(
+            200.0, gt=0,
+            description="A point captured farther than this along the route (metres travelled by the cameras "
+                        "observing the sparse point next to it) from its segment is on another pass of the route "
+                        "(loop start/end, revisits) and is re-anchored on the nearest segment of its own pass "
+                        "(None: off; needs the COLMAP model). See toolkit.warp.passes.")
+        pass_sparse_gap_m: float = Field(
+            2.0, gt=0, description="Only sparse points within this distance of a street point give it a route "
+                                   "position (metres); points without one keep their segment.")
 
     @classmethod
     def scene_needs(cls, params) -> tuple[str, ...]:
@@ -53,4 +73,5 @@ class InverseLog(Stage):
     def __call__(self, transforms: SegmentTransforms, street: StreetSegments, scene: Scene, obs) -> Registration:
         p = self.params
         return warp_scene(transforms, street, scene, p.neighbours_k, p.min_distance_m, p.neighbour_gap_m,
-                          p.neighbour_gap_ratio, np.inf if p.max_neighbour_gap_m is None else p.max_neighbour_gap_m)
+                          p.neighbour_gap_ratio, np.inf if p.max_neighbour_gap_m is None else p.max_neighbour_gap_m,
+                          p.weight_cell_m, PassCheck(p.pass_gap_m, p.pass_sparse_gap_m))

@@ -247,3 +247,38 @@ def test_neighbours_beyond_the_gap_limit_are_not_blended(tmp_path):
         _transforms(T), street, scene, NullObserver())
     err = {k: np.percentile(np.linalg.norm(r.points - truth, axis=1), 95) for k, r in (("all", far), ("15m", near))}
     assert err["15m"] < err["all"], err
+
+
+def _exact_blend(points, xy, anchors, T, index, k, d_min):
+    """Eq. 6 with per-point weights (the reference the cell approximation is checked against)."""
+    out = np.empty_like(points)
+    for n in range(len(points)):
+        cand = index.candidates(int(anchors[n]), k)
+        w = inverse_log_weights(index.distances(cand, xy[n:n + 1])[0], d_min)
+        out[n] = sum(wj * apply(T[j], points[n:n + 1])[0] for wj, j in zip(w, cand)) / w.sum()
+    return out
+
+
+def test_cell_weights_approximate_per_point_weights_and_chunks_do_not_matter(tmp_path):
+    from toolkit.scene import load_points
+    from toolkit.warp.blend import SegmentIndex, blend_points
+
+    street, scene, T, truth, _ = _drifting_street(tmp_path)
+    Tn = _with_refine_noise(T, street, truth, 0.3, 0)
+    tr = _transforms(Tn)
+    pts = load_points(scene, "street_cloud")
+    rng = np.random.default_rng(0)
+    pick = rng.choice(len(pts), 400, replace=False)
+    p, xy = pts[pick], street.level(pts[pick])[:, :2]
+    index = SegmentIndex.build(street, tr, 4)
+    anchors = index.anchors(xy, np.asarray(street.carrier)[pick], tr.valid)
+    exact = _exact_blend(p, xy, anchors, Tn, index, 4, 1.5)
+    fine = blend_points(p, xy, anchors, Tn, index, 4, 1.5, cell_m=0.05)
+    coarse = blend_points(p, xy, anchors, Tn, index, 4, 1.5, cell_m=0.5)
+    assert np.abs(fine - exact).max() < 0.005
+    gap = np.linalg.norm(coarse - exact, axis=1)
+    assert 0 < gap.max() < 0.1 and np.percentile(gap, 90) < 0.01, (gap.max(), np.percentile(gap, 90))
+    assert np.array_equal(blend_points(p, xy, anchors, Tn, index, 4, 1.5, cell_m=0.5, chunk=37), coarse)
+    nearest = blend_points(p, xy, anchors, Tn, index, 0, 1.5)
+    own = np.einsum("nab,nb->na", Tn[anchors, :3, :3], p) + Tn[anchors, :3, 3]
+    assert np.abs(nearest - own).max() < 1e-6

@@ -4,9 +4,15 @@ A camera is anchored on the segment it looks at: the most frequent valid carrier
 dense street points next to the sparse points it observes. Nearness in the street frame alone is
 not enough: after a loop, drift puts the segments of another pass of the route next to the camera.
 Cameras that see no registered segment fall back to the nearest valid segment.
+
+Points are anchored on their carrier segment (else the nearest valid one); with a COLMAP model and
+``pass_gap_m`` set, a point captured on another pass of the route than its anchor segment is
+re-anchored on a segment of its own pass (``toolkit.warp.passes``).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -14,16 +20,25 @@ from scipy.spatial import cKDTree
 from toolkit.refine.blas import single_threaded_blas, workers_for
 from toolkit.types import Registration, Scene, SegmentTransforms, SparseModel, StreetSegments
 from toolkit.warp.blend import SegmentIndex, blend_points, blend_rigid
+from toolkit.warp.passes import point_route_positions, reanchor_other_pass, sparse_route_positions
 
 MAX_TREE_POINTS = 1_000_000
 
 
-def camera_anchors(model: SparseModel, dense: np.ndarray, carrier: np.ndarray, valid: np.ndarray,
-                   max_gap_m: float = 1.0) -> np.ndarray:
-    """(C,) segment each camera observes most (−1: none), via the dense points near its sparse points."""
-    C = len(model.image_names)
-    out = np.full(C, -1, np.int64)
-    if len(model.observations) == 0 or len(model.points3d) == 0:
+@dataclass(frozen=True)
+class PassCheck:
+    """Re-anchoring of points of another pass of the route (see ``toolkit.warp.passes``)."""
+
+    pass_gap_m: float | None = None      # None: off
+    max_gap_m: float = 2.0
+    route_scale: float = 0.1
+
+
+def sparse_segments(model: SparseModel, dense: np.ndarray, carrier: np.ndarray, valid: np.ndarray,
+                    max_gap_m: float = 1.0) -> np.ndarray:
+    """(P,) valid carrier segment of the dense point next to each sparse point (−1: none within max_gap_m)."""
+    out = np.full(len(model.points3d), -1, np.int64)
+    if len(model.points3d) == 0:
         return out
     ok = (carrier >= 0)
     ok[ok] = valid[carrier[ok]]
@@ -34,13 +49,24 @@ def camera_anchors(model: SparseModel, dense: np.ndarray, carrier: np.ndarray, v
         idx = idx[np.linspace(0, len(idx) - 1, MAX_TREE_POINTS).astype(np.int64)]
     d, nn = cKDTree(dense[idx]).query(model.points3d, distance_upper_bound=max_gap_m,
                                       workers=workers_for(len(model.points3d)))
-    seg_of_point = np.where(np.isfinite(d), carrier[idx[np.minimum(nn, len(idx) - 1)]], -1)
+    return np.where(np.isfinite(d), carrier[idx[np.minimum(nn, len(idx) - 1)]], -1)
+
+
+def camera_anchors(model: SparseModel, dense: np.ndarray, carrier: np.ndarray, valid: np.ndarray,
+                   max_gap_m: float = 1.0, seg_of_point: np.ndarray | None = None) -> np.ndarray:
+    """(C,) segment each camera observes most (−1: none), via the dense points near its sparse points."""
+    C = len(model.image_names)
+    out = np.full(C, -1, np.int64)
+    if len(model.observations) == 0 or len(model.points3d) == 0:
+        return out
+    if seg_of_point is None:
+        seg_of_point = sparse_segments(model, dense, carrier, valid, max_gap_m)
     img = model.observations[:, 0].astype(np.int64)
     seg = seg_of_point[model.observations[:, 1].astype(np.int64)]
     keep = seg >= 0
     if not keep.any():
         return out
-    S = int(carrier.max()) + 1
+    S = int(max(carrier.max(), seg.max())) + 1
     votes = np.zeros((C, S), np.int64)
     np.add.at(votes, (img[keep], seg[keep]), 1)
     has = votes.sum(axis=1) > 0
@@ -48,14 +74,30 @@ def camera_anchors(model: SparseModel, dense: np.ndarray, carrier: np.ndarray, v
     return out
 
 
+def segment_route_positions(seg_of_point: np.ndarray, sparse_s: np.ndarray, S: int) -> np.ndarray:
+    """(S,) lower median route position of the sparse points next to each segment (NaN: none)."""
+    ok = (seg_of_point >= 0) & np.isfinite(sparse_s)
+    seg, s = seg_of_point[ok], sparse_s[ok]
+    order = np.lexsort((s, seg))
+    seg, s = seg[order], s[order]
+    start = np.searchsorted(seg, np.arange(S))
+    count = np.bincount(seg, minlength=S)
+    out = np.full(S, np.nan)
+    has = count > 0
+    out[has] = s[start[has] + (count[has] - 1) // 2]
+    return out
+
+
 def warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Scene, k: int, d_min: float,
-               agree_tol_m: float = np.inf, agree_ratio: float = 0.0, max_gap_m: float = np.inf) -> Registration:
+               agree_tol_m: float = np.inf, agree_ratio: float = 0.0, max_gap_m: float = np.inf,
+               cell_m: float = 0.5, passes: PassCheck = PassCheck()) -> Registration:
     with single_threaded_blas():
-        return _warp_scene(transforms, street, scene, k, d_min, agree_tol_m, agree_ratio, max_gap_m)
+        return _warp_scene(transforms, street, scene, k, d_min, agree_tol_m, agree_ratio, max_gap_m, cell_m, passes)
 
 
 def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Scene, k: int, d_min: float,
-                agree_tol_m: float, agree_ratio: float, max_gap_m: float) -> Registration:
+                agree_tol_m: float, agree_ratio: float, max_gap_m: float, cell_m: float,
+                passes: PassCheck) -> Registration:
     from toolkit.scene import load_points, load_sparse
 
     T = np.asarray(transforms.T, np.float64)
@@ -66,20 +108,35 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Sc
     xy = street.level(pts)[:, :2]
     carrier = np.asarray(street.carrier, np.int64)
     anchors = index.anchors(xy, carrier, valid)
-    moved = blend_points(pts, xy, anchors, T, index, k, d_min)
+    model = load_sparse(scene, "warp") if scene.has("sparse") else None
+    seg_of_point = None
+    if model is not None and len(model.points3d):
+        seg_of_point = sparse_segments(model, pts, carrier, valid)
+        if passes.pass_gap_m is not None:
+            sparse_s = sparse_route_positions(model)
+            segment_s = segment_route_positions(seg_of_point, sparse_s, len(street))
+            # only points that can be on another pass: anchored off their carrier, or on a segment
+            # next to sparse points of several passes (saves most of the 3.5 M nearest-sparse queries)
+            ok = (seg_of_point >= 0) & np.isfinite(sparse_s)
+            far = np.abs(sparse_s[ok] - segment_s[seg_of_point[ok]]) > passes.pass_gap_m
+            multi = np.bincount(seg_of_point[ok][far], minlength=len(street)) > 0
+            ask = np.flatnonzero((anchors != carrier) | multi[anchors])
+            point_s = np.full(len(pts), np.nan)
+            point_s[ask] = point_route_positions(pts[ask], model.points3d, sparse_s, passes.max_gap_m)
+            anchors = reanchor_other_pass(anchors, xy, point_s, segment_s, np.asarray(index.all_tree.data), index.all_seg,
+                                          passes.pass_gap_m, passes.route_scale)
+    moved = blend_points(pts, xy, anchors, T, index, k, d_min, cell_m)
     names: tuple[str, ...] = ()
     R, t = np.zeros((0, 3, 3)), np.zeros((0, 3))
-    if scene.has("sparse"):
-        model = load_sparse(scene, "warp")
+    if model is not None and len(model.image_names):
         names = model.image_names
-        if len(names):
-            C = model.centres
-            cxy = street.level(C)[:, :2]
-            cam_anchor = camera_anchors(model, pts, carrier, valid)
-            unseen = cam_anchor < 0
-            if unseen.any():
-                cam_anchor[unseen] = index.nearest(cxy[unseen])
-            pos, Rb = blend_rigid(C, cxy, cam_anchor, T, index, k, d_min)
-            R = np.einsum("cab,cdb->cad", model.R, Rb)          # R_wc · R̄ᵀ
-            t = -np.einsum("cab,cb->ca", R, pos)
+        C = model.centres
+        cxy = street.level(C)[:, :2]
+        cam_anchor = camera_anchors(model, pts, carrier, valid, seg_of_point=seg_of_point)
+        unseen = cam_anchor < 0
+        if unseen.any():
+            cam_anchor[unseen] = index.nearest(cxy[unseen])
+        pos, Rb = blend_rigid(C, cxy, cam_anchor, T, index, k, d_min)
+        R = np.einsum("cab,cdb->cad", model.R, Rb)          # R_wc · R̄ᵀ
+        t = -np.einsum("cab,cb->ca", R, pos)
     return Registration(points=moved, image_names=names, R=R, t=t, point_segment=anchors.astype(np.int64))

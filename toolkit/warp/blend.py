@@ -12,6 +12,12 @@ the blended translation is ``Σ w_j T_j(p) / Σ w_j`` — independent of where t
 (scene coordinates are large UTM numbers) — and the blended rotation is the weighted quaternion
 mean (Markley et al. 2007: the principal eigenvector of ``Σ w q qᵀ``), never a matrix average.
 Positions only need the first; camera orientations use the second.
+
+Speed: the weights of a point are evaluated at the centre of its (anchor, ``cell_m`` cell) — one
+set of footprint distances and one blended affine map ``A p + b`` per cell, then applied to the
+points in chunks (bounded memory). On campus (3.5 M points, 171 segments, K = 16) this took the
+point blend from 15–26 s (per-point KD queries against 17 footprints) to a few seconds, moving
+points by < 0.03 m at the 99th percentile (max 0.19 m) at 0.5 m cells.
 """
 
 from __future__ import annotations
@@ -122,29 +128,68 @@ class SegmentIndex:
         return np.column_stack([self.trees[int(j)].query(xy, workers=w)[0] for j in cand])
 
 
-def blend_points(points: np.ndarray, xy: np.ndarray, anchors: np.ndarray, T: np.ndarray, index: SegmentIndex,
-                 k: int, d_min: float, chunk: int = 1_000_000) -> np.ndarray:
-    """Σ_j w_j T_j(p) / Σ_j w_j over each point's anchor and its k neighbours (k = 0: no blending)."""
-    out = np.empty_like(points, dtype=np.float64)
-    origin = T[index.valid, :3, 3].mean(axis=0)
-    order = np.argsort(anchors, kind="stable")
-    bounds = np.flatnonzero(np.diff(anchors[order])) + 1
-    for grp in np.split(order, bounds):
-        if len(grp) == 0:
+def cell_keys(xy: np.ndarray, anchors: np.ndarray, cell_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """(U,) unique (anchor, xy cell) pairs as (anchor, cell centre xy) and each point's row in them.
+
+    Returns (rows (N,), table (U,3): anchor, centre x, centre y). Cells are ``cell_m`` squares of the
+    levelled xy plane; rows are sorted by anchor, then cell (deterministic).
+    """
+    key = np.floor(xy / cell_m).astype(np.int64)
+    key -= key.min(axis=0)
+    ny = int(key[:, 1].max()) + 1
+    flat = (anchors.astype(np.int64) * (int(key[:, 0].max()) + 1) + key[:, 0]) * ny + key[:, 1]
+    uniq, rows = np.unique(flat, return_inverse=True)
+    first = np.zeros(len(uniq), np.int64)
+    first[rows[::-1]] = np.arange(len(rows) - 1, -1, -1)          # a point of each cell
+    table = np.column_stack([anchors[first].astype(np.float64),
+                             (np.floor(xy[first] / cell_m) + 0.5) * cell_m])
+    return rows.ravel(), table
+
+
+def blended_affine(table: np.ndarray, T: np.ndarray, index: SegmentIndex, k: int, d_min: float,
+                   origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per (anchor, cell) row: (U,3,3) A and (U,3) b with Σ_j w_j (R_j p + t_j − origin) / Σ_j w_j = A p + b.
+
+    Weights are those of the cell centre: the distances to the footprints (themselves thinned to
+    1 m cells) are evaluated once per cell instead of once per point.
+    """
+    U = len(table)
+    A = np.empty((U, 3, 3))
+    b = np.empty((U, 3))
+    anchor = table[:, 0].astype(np.int64)
+    bounds = np.flatnonzero(np.diff(anchor)) + 1
+    for lo, hi in zip(np.concatenate([[0], bounds]), np.concatenate([bounds, [U]])):
+        cand = index.candidates(int(anchor[lo]), k)
+        if len(cand) == 1:
+            A[lo:hi], b[lo:hi] = T[cand[0], :3, :3], T[cand[0], :3, 3] - origin
             continue
-        a = int(anchors[grp[0]])
-        cand = index.candidates(a, k)
-        for s in range(0, len(grp), chunk):
-            idx = grp[s:s + chunk]
-            p = points[idx]
-            if len(cand) == 1:
-                out[idx] = p @ T[a, :3, :3].T + T[a, :3, 3]
-                continue
-            w = inverse_log_weights(index.distances(cand, xy[idx]), d_min)
-            acc = np.zeros((len(idx), 3))
-            for c, j in enumerate(cand):
-                acc += w[:, c:c + 1] * (p @ T[j, :3, :3].T + (T[j, :3, 3] - origin))
-            out[idx] = acc / w.sum(axis=1, keepdims=True) + origin
+        w = inverse_log_weights(index.distances(cand, table[lo:hi, 1:]), d_min)
+        w /= w.sum(axis=1, keepdims=True)
+        A[lo:hi] = np.einsum("uk,kab->uab", w, T[cand, :3, :3])
+        b[lo:hi] = w @ (T[cand, :3, 3] - origin)
+    return A, b
+
+
+def blend_points(points: np.ndarray, xy: np.ndarray, anchors: np.ndarray, T: np.ndarray, index: SegmentIndex,
+                 k: int, d_min: float, cell_m: float = 0.5, chunk: int = 1_000_000) -> np.ndarray:
+    """Σ_j w_j T_j(p) / Σ_j w_j over each point's anchor and its k neighbours (k = 0: no blending).
+
+    The weights of a point are those of the centre of its ``cell_m`` cell (per anchor), so the
+    blend is one affine map per cell, applied to the points in chunks (bounded memory).
+    """
+    out = np.empty((len(points), 3), dtype=np.float64)
+    if len(points) == 0:
+        return out
+    origin = T[index.valid, :3, 3].mean(axis=0)
+    if k == 0:                       # no blending: every point takes its anchor's transform
+        rows, A, b = np.asarray(anchors, np.int64), T[:, :3, :3], T[:, :3, 3] - origin
+    else:
+        rows, table = cell_keys(xy, np.asarray(anchors, np.int64), cell_m)
+        A, b = blended_affine(table, T, index, k, d_min, origin)
+    for s in range(0, len(points), chunk):
+        r = rows[s:s + chunk]
+        p = np.asarray(points[s:s + chunk], np.float64)
+        out[s:s + chunk] = np.einsum("nab,nb->na", A[r], p) + b[r] + origin
     return out
 
 
@@ -155,11 +200,15 @@ def blend_rigid(points: np.ndarray, xy: np.ndarray, anchors: np.ndarray, T: np.n
     K = k + 1
     cand = np.zeros((M, K), np.int64)
     w = np.zeros((M, K))
-    for m in range(M):
-        c = index.candidates(int(anchors[m]), k)
-        cand[m, :len(c)] = c
-        cand[m, len(c):] = c[0]
-        w[m, :len(c)] = inverse_log_weights(index.distances(c, xy[m:m + 1])[0], d_min) if len(c) > 1 else 1.0
+    anchors = np.asarray(anchors, np.int64)
+    order = np.argsort(anchors, kind="stable")
+    for grp in np.split(order, np.flatnonzero(np.diff(anchors[order])) + 1):
+        if len(grp) == 0:
+            continue
+        c = index.candidates(int(anchors[grp[0]]), k)
+        cand[grp, :len(c)] = c
+        cand[grp, len(c):] = c[0]
+        w[grp, :len(c)] = inverse_log_weights(index.distances(c, xy[grp]), d_min) if len(c) > 1 else 1.0
     w /= w.sum(axis=1, keepdims=True)
     origin = T[index.valid, :3, 3].mean(axis=0)
     moved = np.einsum("mkab,mb->mka", T[cand, :3, :3], points) + (T[cand, :3, 3] - origin)

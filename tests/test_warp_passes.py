@@ -1,0 +1,95 @@
+"""Points of another pass of the route than their segment (loop start/end) are re-anchored (toolkit.warp.passes)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from plugins.warp_inverse_log import InverseLog
+from plugins.warp_nearest import Nearest
+from toolkit.io.cloud import write_ply
+from toolkit.io.colmap import write_model
+from toolkit.observe import NullObserver
+from toolkit.scene import load_scene, write_manifest
+from toolkit.types import Camera, SegmentTransforms, SparseModel, StreetSegments
+from toolkit.warp.passes import reanchor_other_pass, sparse_route_positions
+
+
+def _model(centres, points3d, observations):
+    n = len(centres)
+    R = np.repeat(np.eye(3)[None], n, axis=0)
+    return SparseModel(
+        cameras={1: Camera(1, "PINHOLE", 640, 480, np.array([500.0, 500, 320, 240]))},
+        image_names=tuple(f"c{i:03d}.jpg" for i in range(n)), image_ids=np.arange(1, n + 1),
+        camera_ids=np.ones(n, int), R=R, t=-centres, points3d_ids=np.arange(1, len(points3d) + 1),
+        points3d=points3d, points3d_rgb=np.zeros((len(points3d), 3), np.uint8), observations=observations)
+
+
+def test_sparse_route_position_is_the_median_of_the_observing_cameras():
+    centres = np.column_stack([np.arange(5.0) * 10, np.zeros(5), np.zeros(5)])    # s = 0, 10, ..., 40
+    obs = np.array([[0, 0, 1, 1], [1, 0, 1, 1], [4, 0, 1, 1], [3, 1, 1, 1], [2, 2, 1, 1]], float)
+    s = sparse_route_positions(_model(centres, np.zeros((4, 3)), obs))
+    assert s[0] == 10.0 and s[1] == 30.0 and s[2] == 20.0 and np.isnan(s[3])
+
+
+def test_reanchor_moves_only_points_of_another_pass_and_only_to_their_own_pass():
+    seg_s = np.array([0.0, 1000.0, 20.0])
+    fp_xy = np.array([[0.0, 0.0], [0.0, 3.0], [0.0, 1.0]])
+    fp_seg = np.array([0, 1, 2])
+    xy = np.array([[0.0, 0.5], [0.0, 0.5], [0.0, 0.5], [0.0, 0.5]])
+    point_s = np.array([5.0, 990.0, np.nan, 2000.0])   # own pass, other pass, unknown, no segment of its pass
+    out = reanchor_other_pass(np.zeros(4, np.int64), xy, point_s, seg_s, fp_xy, fp_seg, 200.0, 0.1)
+    assert out.tolist() == [0, 1, 0, 0]                 # nearer segment 2 is of the wrong pass for point 1
+
+
+def _loop_scene(tmp_path):
+    """Façade copies of the first (y = 8) and last (y = 6) pass, merged into segment 0 by the
+    segmentation; segment 1 is a façade of the last pass only. Registered, the last pass lies 12 m
+    away from where segment 0's transform (fitted to the first pass) would put it."""
+    rng = np.random.default_rng(1)
+    first = np.column_stack([rng.uniform(0, 20, 600), np.full(600, 8.0), rng.uniform(0, 8, 600)])
+    last = np.column_stack([rng.uniform(0, 20, 300), np.full(300, 6.0), rng.uniform(0, 8, 300)])
+    other = np.column_stack([rng.uniform(0, 20, 300), np.full(300, 2.0), rng.uniform(0, 8, 300)])
+    pts = np.vstack([first, last, other])
+    labels = np.concatenate([np.zeros(900, np.int32), np.ones(300, np.int32)])
+    street = StreetSegments(
+        origin=np.zeros(3), up_rotation=np.eye(3), point_labels=labels, carrier=labels.copy(), ids=np.arange(2),
+        boundary_xy=(first[:, :2], other[:, :2]), centroids=np.array([[10.0, 8.0], [10.0, 2.0]]),
+        extent_m=np.full(2, 20.0), ground_z=np.zeros(2), ground_normal=np.tile([0, 0, 1.0], (2, 1)))
+    # cameras: 20 of the first pass at s = 0..19 m, then the route goes 1 km away and comes back
+    cam = np.vstack([np.column_stack([np.arange(20.0), np.full(20, 4.0), np.full(20, 1.5)]),
+                     [[500.0, 500.0, 1.5]],
+                     np.column_stack([np.arange(20.0), np.full(20, 4.0), np.full(20, 1.5)])])
+    seen = np.concatenate([rng.choice(600, 60, replace=False), 600 + rng.choice(300, 30, replace=False),
+                           900 + rng.choice(300, 30, replace=False)])
+    pass_of = np.where(seen < 600, 0, 1)
+    obs = []
+    for p, ps in enumerate(pass_of):
+        for c in rng.choice(20, 3, replace=False) + (0 if ps == 0 else 21):
+            obs.append([c, p, 100.0, 100.0])
+    model = _model(cam, pts[seen], np.array(obs, float))
+    root = tmp_path / "loop"
+    (root / "street").mkdir(parents=True)
+    write_ply(root / "street/cloud.ply", pts)
+    write_model(model, root / "street/sparse")
+    write_manifest(root, "loop", "EPSG:32617", {"street": {"cloud": "street/cloud.ply", "sparse": "street/sparse"}})
+    T = np.repeat(np.eye(4)[None], 2, axis=0)
+    T[1, :3, 3] = [0.0, 12.0, 0.0]
+    truth = pts.copy()
+    truth[600:, 1] += 12.0
+    tr = SegmentTransforms(T=T, valid=np.ones(2, bool), cost=np.zeros(2), confidence=np.ones(2))
+    return street, load_scene(root), tr, truth
+
+
+@pytest.mark.parametrize("stage", [Nearest, InverseLog], ids=["nearest", "inverse_log"])
+def test_points_of_the_other_pass_follow_a_segment_of_their_own_pass(tmp_path, stage):
+    street, scene, tr, truth = _loop_scene(tmp_path)
+    on = stage.from_config({"neighbours_k": 1} if stage is InverseLog else {})(tr, street, scene, NullObserver())
+    off = stage.from_config({"pass_gap_m": None, **({"neighbours_k": 1} if stage is InverseLog else {})})(
+        tr, street, scene, NullObserver())
+    err_on = np.linalg.norm(on.points - truth, axis=1)
+    err_off = np.linalg.norm(off.points - truth, axis=1)
+    assert np.median(err_off[600:900]) > 10.0                 # without the check: 12 m off
+    assert np.median(err_on[600:900]) < 1.0 and np.percentile(err_on[600:900], 90) < 3.0
+    assert np.abs(on.points[:600] - truth[:600]).max() < 1e-6      # the first pass stays with segment 0
+    assert (on.point_segment[600:900] == 1).mean() > 0.8
