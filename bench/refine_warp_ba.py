@@ -1,7 +1,7 @@
 """Refine + warp + bundle adjustment on scene folders: accuracy against the truth and timings.
 
 The upstream stages (overview … match) of a recipe run once per scene and recipe and are cached
-(pickle under data/.bench-cache/); then, timed: refine.exhaustive (and refine.icp with --icp),
+(pickle under data/.bench-cache/, keyed by scene, step specs and the source of toolkit/ and plugins/); then, timed: refine.exhaustive (and refine.icp with --icp),
 warp.inverse_log and warp.nearest, adjust.constrained_ba with pycolmap/Ceres (and scipy with
 --scipy), adjust.none. Printed per run:
 - per-point error vs truth/street_points.npy: horizontal median, 3D mean and p95; the best single
@@ -38,6 +38,15 @@ from toolkit.scene import load_array, load_points, load_sparse
 UPSTREAM = ("overview", "street", "graph", "unary", "match")
 
 
+def code_stamp() -> str:
+    """Hash of the stages' source: a cached upstream output is stale once any of it changes
+    (parameter defaults live in the code, not in the recipe)."""
+    h = hashlib.sha1()
+    for f in sorted([*REPO.glob("plugins/*.py"), *REPO.glob("toolkit/**/*.py")]):
+        h.update(f.read_bytes())
+    return h.hexdigest()[:12]
+
+
 def upstream(recipe_path: Path, scene_dir: Path, refresh: bool) -> dict:
     """Outputs of the recipe's overview … match steps, each cached on disk under a key made of the
     scene and the specs of the step and of every step it depends on (street is shared by recipes
@@ -48,7 +57,7 @@ def upstream(recipe_path: Path, scene_dir: Path, refresh: bool) -> dict:
     plan = build(recipe, scene=scene_dir)
     kind_of = {v: k for k, v in KIND_OUTPUT.items()}
     specs = {spec.name: f"{spec.use}{sorted(spec.params.items())}" for spec, _ in plan.stages}
-    stamp = f"{scene_dir.resolve()}|{(scene_dir / 'scene.yaml').stat().st_mtime_ns}"
+    stamp = f"{scene_dir.resolve()}|{(scene_dir / 'scene.yaml').stat().st_mtime_ns}|{code_stamp()}"
 
     def key(kind: str) -> str:
         deps = [kind_of[n] for n in KIND_INPUTS[kind] if n != "scene"]
