@@ -409,3 +409,26 @@ def test_campus_acceptance(tmp_path):
         m = (cam >= k0) & (cam < k0 + 50)
         r, t = _rigid_fit(street[m], truth[m])
         assert np.linalg.norm(street[m] @ r.T + t - truth[m], axis=1).mean() <= 0.3, k0
+
+
+def test_label_map_survives_missing_the_building_with_the_highest_id():
+    """Regression (campus seed 5): when the label map's missed buildings include the highest id, the
+    per-building edge offsets must still be indexed by every original id."""
+    from toolkit.synth.config import config_for
+    from toolkit.synth.overview import Render, label_product
+
+    label = np.full((60, 60), -1, np.int32)
+    for k in range(1, 6):
+        label[10 * k - 5:10 * k + 2, 5:50] = k
+    h, w = label.shape
+    render = Render(height=np.zeros((h, w)), label=label, kind=np.zeros((h, w), np.uint8),
+                    color=np.zeros((h, w, 3), np.uint8), normal_z=np.ones((h, w), np.float32),
+                    shadow=np.zeros((h, w), bool), sun_dot=np.ones((h, w), np.float32))
+    cfg = config_for("tiny", label_missed_fraction=0.2, label_false_blobs_per_ha=0.0)
+    hit_max = 0
+    for seed in range(40):  # some seeds miss building 5, the highest id
+        rng = np.random.default_rng(seed)
+        out = label_product(render, cfg, rng)
+        assert out.shape == label.shape and out.dtype == np.uint8
+        hit_max += not out[45:52, 10:45].any()
+    assert hit_max > 0

@@ -155,7 +155,7 @@ def label_product(r: Render, cfg: SynthConfig, rng: np.random.Generator) -> np.n
     d_out, (ir, ic) = ndi.distance_transform_edt(~mask, return_indices=True)
     nearest = ids[ir, ic]
     E = cfg.label_edge_px
-    per_id = np.zeros(int(ids.max()) + 1)
+    per_id = np.zeros(int(uniq.max()) + 1)  # uniq still holds the missed ids (ids.max() may not)
     per_id[uniq] = rng.uniform(-E, E, len(uniq)) if E > 0 else 0.0
     ragged = ndi.gaussian_filter(rng.normal(0, 1, mask.shape), 1.5)
     ragged *= 0.6 / max(ragged.std(), 1e-9)
