@@ -29,7 +29,9 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "bench"))
 
+from refine_warp_ba import code_stamp  # noqa: E402
 from toolkit.observe import NullObserver  # noqa: E402
 from toolkit.recipe import load_recipe  # noqa: E402
 from toolkit.runner import build  # noqa: E402
@@ -46,7 +48,7 @@ def _bench_cache_key(plan, scene_dir: Path, kind: str) -> Path:
 
     kind_of = {v: k for k, v in KIND_OUTPUT.items()}
     specs = {spec.name: f"{spec.use}{sorted(spec.params.items())}" for spec, _ in plan.stages}
-    stamp = f"{scene_dir.resolve()}|{(scene_dir / 'scene.yaml').stat().st_mtime_ns}"
+    stamp = f"{scene_dir.resolve()}|{(scene_dir / 'scene.yaml').stat().st_mtime_ns}|{code_stamp()}"
 
     def key(k: str) -> str:
         deps = [kind_of[n] for n in KIND_INPUTS[k] if n != "scene"]
