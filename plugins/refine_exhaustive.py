@@ -175,6 +175,17 @@ class Exhaustive(Stage):
             st.shown.append((i, fp @ res.T2d[:2, :2].T + res.T2d[:2, 2]))
         return bool(st.valid[i])
 
+    def _placed_by_neighbours(self, i, known, k, street, overview, pts, st, T):
+        """(seed transform, over-view window) for segment i as its k nearest ``known`` neighbours place
+        it; None when it has none."""
+        p = self.params
+        fp = pts.footprint(i, p.footprint_cell_m, p.max_footprint_points)
+        gz = street.ground_z[i] if np.isfinite(street.ground_z[i]) else 0.0
+        seed = predict_seed(fp, gz, street, T, known, i, k, st.keys)
+        if seed is None:
+            return None
+        return seed, footprint_window(fp @ seed[:2, :2].T + seed[:2, 2], overview.grid)
+
     def _neighbour_pass(self, street, overview, graphs, pts, heights, sp, gp, cp, st, T, valid, obs):
         """Search every registered segment again, seeded where its neighbours put it.
 
@@ -189,14 +200,11 @@ class Exhaustive(Stage):
         for i in np.flatnonzero(valid):
             others = valid.copy()
             others[i] = False
-            fp = pts.footprint(i, p.footprint_cell_m, p.max_footprint_points)
-            gz = street.ground_z[i] if np.isfinite(street.ground_z[i]) else 0.0
-            seed = predict_seed(fp, gz, street, T, others, i, p.prior_k, st.keys)
-            if seed is None:
+            placed = self._placed_by_neighbours(i, others, p.prior_k, street, overview, pts, st, T)
+            if placed is None:
                 continue
+            seed, box = placed          # every outline around the predicted place: the match may be wrong
             _, _, o_normal, o_height, conf = st.target[i]
-            # every outline around the predicted place: the match may name the wrong building
-            box = footprint_window(fp @ seed[:2, :2].T + seed[:2, 2], overview.grid)
             self._register(i, seed, None, box, o_normal, o_height, conf, pts, overview, heights, sp, gp, st)
         T = compose(street, st.T2d, st.R_z, st.t_z, st.centres, before & st.valid, cp.k, obs)
         valid = consistent(T, before & st.valid, street, cp, graphs, st.points * st.conf, st.keys, route_s=st.route_s)
@@ -236,12 +244,10 @@ class Exhaustive(Stage):
             cand = np.zeros(len(street), bool)
             for i in todo:
                 tried[i] = True
-                fp = pts.footprint(i, p.footprint_cell_m, p.max_footprint_points)
-                gz = street.ground_z[i] if np.isfinite(street.ground_z[i]) else 0.0
-                seed = predict_seed(fp, gz, street, T, valid, i, p.neighbours_k, st.keys)
-                if seed is None:
+                placed = self._placed_by_neighbours(i, valid, p.neighbours_k, street, overview, pts, st, T)
+                if placed is None:
                     continue
-                box = footprint_window(fp @ seed[:2, :2].T + seed[:2, 2], overview.grid)
+                seed, box = placed
                 st.valid[i] = False
                 if self._register(i, seed, None, box, level, np.nan, p.propagated_confidence, pts, overview,
                                   heights, sp, gp, st):

@@ -14,9 +14,33 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from toolkit.refine.blas import workers_for
-from toolkit.types import Scene, StreetSegments
+from toolkit.types import Scene, SparseModel, StreetSegments
 
 MAX_TREE_POINTS = 1_000_000
+
+
+def camera_route_positions(model: SparseModel) -> np.ndarray:
+    """(C,) metres travelled along the camera path up to each camera (in model order)."""
+    steps = np.linalg.norm(np.diff(model.centres, axis=0), axis=1)
+    return np.concatenate([[0.0], np.cumsum(steps)])
+
+
+def sparse_segments(model: SparseModel, dense: np.ndarray, carrier: np.ndarray, valid: np.ndarray,
+                    max_gap_m: float = 1.0) -> np.ndarray:
+    """(P,) valid carrier segment of the dense point next to each sparse point (−1: none within max_gap_m)."""
+    out = np.full(len(model.points3d), -1, np.int64)
+    if len(model.points3d) == 0:
+        return out
+    ok = (carrier >= 0)
+    ok[ok] = valid[carrier[ok]]
+    idx = np.flatnonzero(ok)
+    if len(idx) == 0:
+        return out
+    if len(idx) > MAX_TREE_POINTS:
+        idx = idx[np.linspace(0, len(idx) - 1, MAX_TREE_POINTS).astype(np.int64)]
+    d, nn = cKDTree(dense[idx]).query(model.points3d, distance_upper_bound=max_gap_m,
+                                      workers=workers_for(len(model.points3d)))
+    return np.where(np.isfinite(d), carrier[idx[np.minimum(nn, len(idx) - 1)]], -1)
 
 
 def route_positions(street: StreetSegments, scene: Scene, dense: np.ndarray, max_gap_m: float = 1.0) -> np.ndarray:
@@ -31,16 +55,8 @@ def route_positions(street: StreetSegments, scene: Scene, dense: np.ndarray, max
     if len(model.observations) == 0 or len(model.image_names) < 2:
         return out
     carrier = np.asarray(street.carrier, np.int64)
-    idx = np.flatnonzero(carrier >= 0)
-    if len(idx) == 0:
-        return out
-    if len(idx) > MAX_TREE_POINTS:
-        idx = idx[np.linspace(0, len(idx) - 1, MAX_TREE_POINTS).astype(np.int64)]
-    d, nn = cKDTree(dense[idx]).query(model.points3d, distance_upper_bound=max_gap_m,
-                                      workers=workers_for(len(model.points3d)))
-    seg_of_point = np.where(np.isfinite(d), carrier[idx[np.minimum(nn, len(idx) - 1)]], -1)
-    steps = np.linalg.norm(np.diff(model.centres, axis=0), axis=1)
-    s_cam = np.concatenate([[0.0], np.cumsum(steps)])
+    seg_of_point = sparse_segments(model, dense, carrier, np.ones(S, bool), max_gap_m)
+    s_cam = camera_route_positions(model)
     img = model.observations[:, 0].astype(np.int64)
     seg = seg_of_point[model.observations[:, 1].astype(np.int64)]
     keep = seg >= 0

@@ -15,15 +15,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-from toolkit.refine.blas import single_threaded_blas, workers_for
+from toolkit.refine.blas import single_threaded_blas
+from toolkit.refine.route import sparse_segments
 from toolkit.types import Registration, Scene, SegmentTransforms, SparseModel, StreetSegments
 from toolkit.warp.blend import SegmentIndex, blend_points, blend_rigid
 from toolkit.warp.passes import point_route_positions, reanchor_other_pass, sparse_route_positions
-
-MAX_TREE_POINTS = 1_000_000
-
 
 @dataclass(frozen=True)
 class PassCheck:
@@ -32,24 +29,6 @@ class PassCheck:
     pass_gap_m: float | None = None      # None: off
     max_gap_m: float = 2.0
     route_scale: float = 0.1
-
-
-def sparse_segments(model: SparseModel, dense: np.ndarray, carrier: np.ndarray, valid: np.ndarray,
-                    max_gap_m: float = 1.0) -> np.ndarray:
-    """(P,) valid carrier segment of the dense point next to each sparse point (−1: none within max_gap_m)."""
-    out = np.full(len(model.points3d), -1, np.int64)
-    if len(model.points3d) == 0:
-        return out
-    ok = (carrier >= 0)
-    ok[ok] = valid[carrier[ok]]
-    idx = np.flatnonzero(ok)
-    if len(idx) == 0:
-        return out
-    if len(idx) > MAX_TREE_POINTS:
-        idx = idx[np.linspace(0, len(idx) - 1, MAX_TREE_POINTS).astype(np.int64)]
-    d, nn = cKDTree(dense[idx]).query(model.points3d, distance_upper_bound=max_gap_m,
-                                      workers=workers_for(len(model.points3d)))
-    return np.where(np.isfinite(d), carrier[idx[np.minimum(nn, len(idx) - 1)]], -1)
 
 
 def camera_anchors(model: SparseModel, dense: np.ndarray, carrier: np.ndarray, valid: np.ndarray,

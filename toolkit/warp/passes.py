@@ -21,6 +21,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from toolkit.refine.blas import workers_for
+from toolkit.refine.route import camera_route_positions
 from toolkit.types import SparseModel
 
 
@@ -30,8 +31,7 @@ def sparse_route_positions(model: SparseModel) -> np.ndarray:
     out = np.full(P, np.nan)
     if P == 0 or len(model.observations) == 0 or len(model.image_names) < 2:
         return out
-    steps = np.linalg.norm(np.diff(model.centres, axis=0), axis=1)
-    s_cam = np.concatenate([[0.0], np.cumsum(steps)])
+    s_cam = camera_route_positions(model)
     pt = model.observations[:, 1].astype(np.int64)
     s = s_cam[model.observations[:, 0].astype(np.int64)]
     order = np.lexsort((s, pt))
