@@ -31,7 +31,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
-from refine_warp_ba import code_stamp  # noqa: E402
+from refine_warp_ba import cache_path  # noqa: E402
 from toolkit.observe import NullObserver  # noqa: E402
 from toolkit.recipe import load_recipe  # noqa: E402
 from toolkit.runner import build  # noqa: E402
@@ -40,22 +40,6 @@ SOLVERS = {"loopy_bp": "match.loopy_bp", "trws": "match.trws", "icm": "match.icm
 MATCHING_SOURCES = ["plugins/graph_knn.py", "plugins/unary_distance_map.py", "toolkit/matching/chamfer.py",
                     "toolkit/matching/anchors.py", "toolkit/matching/atlas.py", "toolkit/matching/gps.py",
                     "toolkit/matching/conjugate.py"]
-
-
-def _bench_cache_key(plan, scene_dir: Path, kind: str) -> Path:
-    """The file bench/refine_warp_ba.py caches ``kind`` under (same key)."""
-    from toolkit.stage import KIND_INPUTS, KIND_OUTPUT
-
-    kind_of = {v: k for k, v in KIND_OUTPUT.items()}
-    specs = {spec.name: f"{spec.use}{sorted(spec.params.items())}" for spec, _ in plan.stages}
-    stamp = f"{scene_dir.resolve()}|{(scene_dir / 'scene.yaml').stat().st_mtime_ns}|{code_stamp()}"
-
-    def key(k: str) -> str:
-        deps = [kind_of[n] for n in KIND_INPUTS[k] if n != "scene"]
-        return specs[k] + "|" + "|".join(key(d) for d in deps)
-
-    h = hashlib.sha1((stamp + key(kind)).encode()).hexdigest()[:16]
-    return REPO / "data" / ".bench-cache" / f"{scene_dir.name}-{kind}-{h}.pkl"
 
 
 def _load_or_run(path: Path, seed_path: Path | None, make, label: str):
@@ -83,11 +67,11 @@ def front(recipe_path: Path, scene_dir: Path, cache_dir: Path, use_gps: bool, ov
     stages = {spec.name: (spec, st) for spec, st in plan.stages}
     scene = plan.scene
     obs = NullObserver()
-    street = _load_or_run(cache_dir / f"{scene_dir.name}-street.pkl", _bench_cache_key(plan, scene_dir, "street"),
+    street = _load_or_run(cache_dir / f"{scene_dir.name}-street.pkl", cache_path(plan, scene_dir, "street"),
                           lambda: stages["street"][1](scene=scene, obs=obs), f"{scene_dir.name} street")
     ov_spec = stages["overview"][0]
     overview = _load_or_run(cache_dir / f"{scene_dir.name}-{ov_spec.use}.pkl",
-                            _bench_cache_key(plan, scene_dir, "overview"),
+                            cache_path(plan, scene_dir, "overview"),
                             lambda: stages["overview"][1](scene=scene, obs=obs), f"{scene_dir.name} {ov_spec.use}")
     src = b"".join((REPO / f).read_bytes() for f in MATCHING_SOURCES)
     spec_txt = "|".join(f"{stages[k][0].use}{sorted(stages[k][0].params.items())}" for k in ("graph", "unary"))

@@ -47,28 +47,34 @@ def code_stamp() -> str:
     return h.hexdigest()[:12]
 
 
-def upstream(recipe_path: Path, scene_dir: Path, refresh: bool) -> dict:
-    """Outputs of the recipe's overview … match steps, each cached on disk under a key made of the
-    scene and the specs of the step and of every step it depends on (street is shared by recipes
-    that differ only in the over-view source)."""
+def cache_path(plan, scene_dir: Path, kind: str) -> Path:
+    """Where step ``kind``'s output is cached: keyed by the scene, the stages' source and the specs of
+    the step and of every step it depends on (street is shared by recipes that differ only in the
+    over-view source)."""
     from toolkit.stage import KIND_INPUTS, KIND_OUTPUT
 
-    recipe = load_recipe(recipe_path)
-    plan = build(recipe, scene=scene_dir)
     kind_of = {v: k for k, v in KIND_OUTPUT.items()}
     specs = {spec.name: f"{spec.use}{sorted(spec.params.items())}" for spec, _ in plan.stages}
     stamp = f"{scene_dir.resolve()}|{(scene_dir / 'scene.yaml').stat().st_mtime_ns}|{code_stamp()}"
 
-    def key(kind: str) -> str:
-        deps = [kind_of[n] for n in KIND_INPUTS[kind] if n != "scene"]
-        return specs[kind] + "|" + "|".join(key(d) for d in deps)
+    def key(k: str) -> str:
+        deps = [kind_of[n] for n in KIND_INPUTS[k] if n != "scene"]
+        return specs[k] + "|" + "|".join(key(d) for d in deps)
 
+    h = hashlib.sha1((stamp + key(kind)).encode()).hexdigest()[:16]
+    return REPO / "data" / ".bench-cache" / f"{scene_dir.name}-{kind}-{h}.pkl"
+
+
+def upstream(recipe_path: Path, scene_dir: Path, refresh: bool) -> dict:
+    """Outputs of the recipe's overview … match steps, each cached on disk (``cache_path``)."""
+    from toolkit.stage import KIND_INPUTS, KIND_OUTPUT
+
+    plan = build(load_recipe(recipe_path), scene=scene_dir)
     results = {"scene": plan.scene}
     for spec, stage in plan.stages:
         if spec.name not in UPSTREAM:
             continue
-        h = hashlib.sha1((stamp + key(spec.name)).encode()).hexdigest()[:16]
-        cache = REPO / "data" / ".bench-cache" / f"{scene_dir.name}-{spec.name}-{h}.pkl"
+        cache = cache_path(plan, scene_dir, spec.name)
         if cache.is_file() and not refresh:
             with open(cache, "rb") as fh:
                 results[KIND_OUTPUT[spec.name]] = pickle.load(fh)
