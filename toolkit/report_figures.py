@@ -200,8 +200,8 @@ def error_histograms(values: dict[str, Any]) -> Figure | None:
         edges = np.asarray(edges + ([last] if len(edges) == len(counts) else []), float)
         total = counts.sum()
         frac = counts / total if total else counts
-        ax.bar(edges[:-1], frac * 100, width=np.diff(edges), align="edge", color="#4c72b0", edgecolor="white",
-               linewidth=0.3)
+        # one artist for all bins (a bar chart draws one patch per bin, ~10x slower to render)
+        ax.stairs(frac * 100, edges, fill=True, color="#4c72b0")
         mean = d.get("mean_m", (d.get("error_3d") or {}).get("mean_m"))
         std = d.get("std_m")
         if mean is not None:

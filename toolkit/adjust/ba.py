@@ -84,11 +84,13 @@ def adjust_ceres(model: SparseModel, R0: np.ndarray, t0: np.ndarray, X0: np.ndar
     by_pt = np.argsort(pt, kind="stable")
     bounds = np.searchsorted(pt[by_pt], np.arange(len(X0) + 1))
     iid = model.image_ids
-    new_ids = np.empty(len(use), np.int64)
-    for n, j in enumerate(use):
-        obs_j = by_pt[bounds[j]:bounds[j + 1]]
-        track = pycolmap.Track([pycolmap.TrackElement(int(iid[img[q]]), int(pos[q])) for q in obs_j])
-        new_ids[n] = rec.add_point3D(X0[j] - origin, track)
+    # plain Python ints, built once: pycolmap takes elements one by one
+    elem_image, elem_idx = iid[img[by_pt]].tolist(), pos[by_pt].tolist()
+    starts, ends, xyz = bounds[use].tolist(), bounds[use + 1].tolist(), X0[use] - origin
+    element = pycolmap.TrackElement
+    new_ids = np.array([
+        rec.add_point3D(xyz[n], pycolmap.Track([element(a, b) for a, b in zip(elem_image[s:e], elem_idx[s:e])]))
+        for n, (s, e) in enumerate(zip(starts, ends))], np.int64).reshape(-1)
 
     opts = pycolmap.BundleAdjustmentOptions()
     opts.refine_focal_length = False

@@ -201,16 +201,29 @@ def _read_points_bin(path: Path):
 
 
 # --- writing ----------------------------------------------------------------------------------
-def _tracks(model: SparseModel):
-    """Per image: (xys (K,2), point3d ids (K,)); per point: list of (image_id, point2d_idx)."""
-    per_image = [[] for _ in model.image_names]
-    for k, p, u, v in model.observations:
-        per_image[int(k)].append((u, v, int(model.points3d_ids[int(p)])))
-    tracks: dict[int, list[tuple[int, int]]] = {int(p): [] for p in model.points3d_ids}
-    for k, obs in enumerate(per_image):
-        for j, (_, _, pid) in enumerate(obs):
-            tracks[pid].append((int(model.image_ids[k]), j))
-    return per_image, tracks
+class _Tracks:
+    """Observations grouped both ways, as flat arrays (no per-observation Python objects).
+
+    By image (COLMAP's POINTS2D order: file order of the observations within each image):
+    ``uv``/``pid`` rows, image k's rows are ``img_start[k]:img_start[k+1]``. By point (TRACK order:
+    image file order, then 2D index): ``track`` rows (image_id, point2d_idx), point i's rows are
+    ``pt_start[i]:pt_start[i+1]``.
+    """
+
+    def __init__(self, model: SparseModel) -> None:
+        obs = np.asarray(model.observations, dtype=np.float64).reshape(-1, 4)
+        img = obs[:, 0].astype(np.int64)
+        pt = obs[:, 1].astype(np.int64)
+        by_img = np.argsort(img, kind="stable")
+        n_img, n_pt = len(model.image_names), len(model.points3d_ids)
+        self.img_start = np.searchsorted(img[by_img], np.arange(n_img + 1))
+        self.uv = obs[by_img, 2:4]
+        self.pid = np.asarray(model.points3d_ids, np.int64)[pt[by_img]]
+        point2d_idx = np.arange(len(by_img)) - self.img_start[img[by_img]]
+        by_pt = np.argsort(pt[by_img], kind="stable")
+        self.pt_start = np.searchsorted(pt[by_img][by_pt], np.arange(n_pt + 1))
+        image_ids = np.asarray(model.image_ids, np.int64)
+        self.track = np.stack([image_ids[img[by_img][by_pt]], point2d_idx[by_pt]], axis=1)
 
 
 def write_model(model: SparseModel, path: str | Path, binary: bool = False) -> None:
@@ -220,30 +233,36 @@ def write_model(model: SparseModel, path: str | Path, binary: bool = False) -> N
 
 
 def _write_txt(model: SparseModel, path: Path) -> None:
-    per_image, tracks = _tracks(model)
+    tr = _Tracks(model)
     with open(path / "cameras.txt", "w") as fh:
         fh.write("# CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n")
         for cid in sorted(model.cameras):
             c = model.cameras[cid]
             fh.write(" ".join([str(cid), c.model, str(c.width), str(c.height), *map(repr, map(float, c.params))]) + "\n")
     qs = _qvecs(model)
+    uv = [f"{u!r} {v!r} {p}" for (u, v), p in zip(tr.uv.tolist(), tr.pid.tolist())]
     with open(path / "images.txt", "w") as fh:
         fh.write("# IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n# POINTS2D[] as (X, Y, POINT3D_ID)\n")
         for k, name in enumerate(model.image_names):
             vals = [*map(float, qs[k]), *map(float, model.t[k])]
             fh.write(" ".join([str(int(model.image_ids[k])), *map(repr, vals), str(int(model.camera_ids[k])), name]) + "\n")
-            fh.write(" ".join(f"{float(u)!r} {float(v)!r} {pid}" for u, v, pid in per_image[k]) + "\n")
+            fh.write(" ".join(uv[tr.img_start[k]:tr.img_start[k + 1]]) + "\n")
+    pairs = [f"{a} {j}" for a, j in tr.track.tolist()]
+    xyz, rgb = np.asarray(model.points3d, np.float64).tolist(), np.asarray(model.points3d_rgb).tolist()
+    starts = tr.pt_start.tolist()
     with open(path / "points3D.txt", "w") as fh:
         fh.write("# POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n")
-        for i, pid in enumerate(model.points3d_ids):
-            x, y, z = map(float, model.points3d[i])
-            r, g, b = map(int, model.points3d_rgb[i])
-            tr = " ".join(f"{a} {j}" for a, j in tracks[int(pid)])
-            fh.write(f"{int(pid)} {x!r} {y!r} {z!r} {r} {g} {b} 0.0 {tr}\n")
+        fh.writelines(
+            f"{pid} {x!r} {y!r} {z!r} {r} {g} {b} 0.0 {' '.join(pairs[starts[i]:starts[i + 1]])}\n"
+            for i, (pid, (x, y, z), (r, g, b)) in enumerate(zip(np.asarray(model.points3d_ids).tolist(), xyz, rgb)))
+
+
+_POINT2D = np.dtype([("x", "<f8"), ("y", "<f8"), ("id", "<i8")])
+_POINT_HEAD = np.dtype([("id", "<u8"), ("xyz", "<f8", 3), ("rgb", "u1", 3), ("error", "<f8"), ("n", "<u8")])
 
 
 def _write_bin(model: SparseModel, path: Path) -> None:
-    per_image, tracks = _tracks(model)
+    tr = _Tracks(model)
     with open(path / "cameras.bin", "wb") as fh:
         fh.write(struct.pack("<Q", len(model.cameras)))
         for cid in sorted(model.cameras):
@@ -251,22 +270,26 @@ def _write_bin(model: SparseModel, path: Path) -> None:
             fh.write(struct.pack("<iiQQ", cid, MODEL_IDS[c.model][0], c.width, c.height))
             fh.write(np.asarray(c.params, "<f8").tobytes())
     qs = _qvecs(model)
+    rec = np.empty(len(tr.pid), _POINT2D)
+    rec["x"], rec["y"], rec["id"] = tr.uv[:, 0], tr.uv[:, 1], tr.pid
     with open(path / "images.bin", "wb") as fh:
         fh.write(struct.pack("<Q", len(model.image_names)))
         for k, name in enumerate(model.image_names):
             fh.write(struct.pack("<i", int(model.image_ids[k])))
             fh.write(np.concatenate([qs[k], model.t[k]]).astype("<f8").tobytes())
             fh.write(struct.pack("<i", int(model.camera_ids[k])) + name.encode() + b"\x00")
-            rec = np.array([(u, v, pid) for u, v, pid in per_image[k]],
-                           dtype=[("x", "<f8"), ("y", "<f8"), ("id", "<i8")])
-            fh.write(struct.pack("<Q", len(rec)) + rec.tobytes())
+            fh.write(struct.pack("<Q", tr.img_start[k + 1] - tr.img_start[k]))
+            fh.write(rec[tr.img_start[k]:tr.img_start[k + 1]].tobytes())
+    head = np.zeros(len(model.points3d_ids), _POINT_HEAD)
+    head["id"], head["xyz"], head["rgb"] = model.points3d_ids, model.points3d, model.points3d_rgb
+    head["n"] = np.diff(tr.pt_start)
+    head_bytes, track_bytes = head.tobytes(), tr.track.astype("<i4").tobytes()
+    hs, ts = _POINT_HEAD.itemsize, 8  # one track element: two int32
+    starts = tr.pt_start.tolist()
     with open(path / "points3D.bin", "wb") as fh:
         fh.write(struct.pack("<Q", len(model.points3d_ids)))
-        for i, pid in enumerate(model.points3d_ids):
-            fh.write(struct.pack("<Q", int(pid)) + np.asarray(model.points3d[i], "<f8").tobytes())
-            fh.write(np.asarray(model.points3d_rgb[i], "u1").tobytes() + struct.pack("<d", 0.0))
-            tr = np.array(tracks[int(pid)], dtype="<i4").reshape(-1, 2)
-            fh.write(struct.pack("<Q", len(tr)) + tr.tobytes())
+        fh.write(b"".join(head_bytes[i * hs:(i + 1) * hs] + track_bytes[starts[i] * ts:starts[i + 1] * ts]
+                          for i in range(len(head))))
 
 
 def replace_poses(model: SparseModel, R: np.ndarray, t: np.ndarray,
