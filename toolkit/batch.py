@@ -58,6 +58,14 @@ def run_one(recipe_path: str, scene_dir: str, out_dir: str, overrides: list[str]
     return row
 
 
+def scene_bytes(scene_dir: Path) -> int:
+    """Size of the scene's files (a proxy for its run time); 0 when unreadable."""
+    try:
+        return sum(f.stat().st_size for f in Path(scene_dir).rglob("*") if f.is_file())
+    except OSError:
+        return 0
+
+
 def find_scenes(pattern: str) -> list[Path]:
     paths = sorted({Path(p).parent if Path(p).name == "scene.yaml" else Path(p) for p in glob.glob(pattern)})
     if not paths:
@@ -91,9 +99,12 @@ def run_batch(recipe_path: Path, scenes: list[Path], out_root: Path, workers: in
         client = Client(cluster)
     rows: list[dict[str, Any]] = []
     try:
+        # largest scenes first (by bytes on disk): the last scene running alone on one worker is
+        # then a small one, which keeps the other workers' idle tail short
         futures = [client.submit(run_one, str(recipe_path.resolve()), str(s.resolve()),
                                  str((out_root / scene_label(s)).resolve()), list(overrides or []), overwrite,
-                                 pure=False, key=f"scene-{scene_label(s)}") for s in scenes]
+                                 pure=False, key=f"scene-{scene_label(s)}", priority=i)
+                   for i, s in enumerate(sorted(scenes, key=scene_bytes))]
         if progress:
             from rich.progress import Progress
 
