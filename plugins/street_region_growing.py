@@ -10,10 +10,11 @@ Steps (helpers in ``toolkit/street``):
 3. Façade rule: normal > ``facade_angle_deg`` from vertical AND > ``facade_neighbour_fraction``
    of the k neighbours too, optionally voted over ``multiscale_knn`` (``facade.py``).
 4. Region growing (Rabbani) as connected components of the façade kNN graph (union-find pass +
-   scipy.sparse.csgraph), bends split (``growing.py``); walls meeting at a corner and pieces of
-   one occluded wall merged when they reach the same height (``merge.py``); segments under ``min_diameter_m`` wide, ``min_height_m`` high or
-   ``min_points`` dropped; leftover façade points absorbed by an adjacent segment whose normal agrees
-   (``absorb.py``). Segment indices are ordered by decreasing size; ids = indices.
+   scipy.sparse.csgraph), bends split (``growing.py``); rows of terraced houses cut where the façade
+   top steps (``split.py``); walls meeting at a corner and pieces of one occluded wall merged when
+   they reach the same height (``merge.py``); segments under ``min_diameter_m`` wide,
+   ``min_height_m`` high or ``min_points`` dropped; leftover façade points absorbed by an adjacent
+   segment whose normal agrees (``absorb.py``). Segment indices are ordered by decreasing size; ids = indices.
 5. Ground (normal within ``ground_angle_deg`` of vertical) and every other point carried by the
    nearest segment within ``association_radius_m`` (2D); per-segment ground height and normal.
 
@@ -44,6 +45,7 @@ from toolkit.street.merge import merge_segments
 from toolkit.street.normals import build_tree, coordinate_columns, open3d_normals
 from toolkit.street.order import prepare
 from toolkit.street.outline import boundary_points, diameters, relabel_by_size
+from toolkit.street.split import split_terraces
 from toolkit.street.vertical import Vertical, estimate_up
 from toolkit.types import Scene, StreetSegments
 
@@ -70,6 +72,25 @@ class RegionGrowingParams(StageParams):
         0.1, gt=0, le=1 / 3, description="region growing: points with surface variation above this do not propagate")
     bend_split_angle_deg: float = Field(
         30.0, gt=0, le=180, description="split segments whose horizontal normals spread more than this (180 = off)")
+    split_window_m: float = Field(
+        2.0, ge=0, description="terrace split (split.py): compare the façade top over this length either side of "
+                               "each place along a segment (0 = no split; measured: Den Haag buildings covered "
+                               "30 → 37/156, campus segments 144 → 164, campus dsm match P/R .971/.971 → .975/.975)")
+    split_bin_m: float = Field(0.5, gt=0, description="terrace split: profile bin length along the façade")
+    split_top_step_m: float = Field(
+        0.3, ge=0, description="terrace split: cut where the façade top (eaves) steps by at least this (0 = off)")
+    split_setback_m: float = Field(
+        0.0, ge=0, description="terrace split: cut where the façade plane steps back by at least this (0 = off; "
+                               "0.2-0.3 m changed nothing on campus and Den Haag: set-backs already break growing)")
+    split_turn_deg: float = Field(
+        0.0, ge=0, description="terrace split: cut where the façade direction turns by at least this (0 = off; "
+                               "2-4° changed no covered building on campus or Den Haag, +0-5 segments)")
+    split_min_end_m: float = Field(
+        5.0, ge=0, description="terrace split: no cut closer than this to a segment's end (façade tops droop "
+                               "there; pieces under min_diameter_m would be dropped: 3 m lost 0.03 of the "
+                               "campus façade recall)")
+    split_min_gap_m: float = Field(
+        5.0, ge=0, description="terrace split: cuts at least this far apart (the stronger step wins)")
     merge_contact_m: float = Field(
         1.0, ge=0, description="merge segments whose façade points come this close (2D) at equal wall height (0 = off)")
     merge_gap_m: float = Field(
@@ -247,6 +268,8 @@ class RegionGrowing(Stage):
         azimuth = np.arctan2(fac_normals[:, 1], fac_normals[:, 0])
         labels = grow_regions(fac_normals, facade.graph, facade.index, n_points, facade.curvature,
                               p.smooth_angle_deg, p.seed_curvature_max, azimuth, p.bend_split_angle_deg)
+        labels = split_terraces(fac_xyz, azimuth, labels, p.split_bin_m, p.split_window_m, p.split_top_step_m,
+                                p.split_setback_m, p.split_turn_deg, p.split_min_end_m, p.split_min_gap_m)
         labels = merge_segments(fac_xyz[:, :2], fac_xyz[:, 2], azimuth, labels, p.merge_contact_m, p.merge_gap_m,
                                 p.merge_height_tol_m, p.merge_min_corner_deg, p.min_points)
         labels = _drop_small(relabel_by_size(labels), fac_xyz, p.min_diameter_m, p.min_height_m, p.min_points)
