@@ -137,11 +137,13 @@ class DistanceMap(Stage):
                                     "fits put segments within 13 m of the truth; at 60 m repeated façades of the "
                                     "next buildings along the street stay candidates.")
         gps_cost_weight: float = Field(
-            0.1, ge=0, description="With GPS: add weight·(d / GPS radius)² to the raw chamfer cost, d the larger "
+            0.6, ge=0, description="With GPS: add weight·(d / GPS radius)² to the raw chamfer cost, d the larger "
                                    "distance of the pose-placed segment centres from their GPS-implied "
                                    "positions (a soft prior inside the hard radius; raw cost 0.5 = null). "
-                                   "It tells repeated façades of neighbouring buildings apart. 0: hard "
-                                   "pruning only.")
+                                   "It tells repeated façades of neighbouring buildings apart (terraced houses "
+                                   "cut by the street step). 0: hard pruning only. Held-out campus seeds 5-7 × "
+                                   "3 sources, loopy BP, precision min / recall min: 0.959 / 0.873 at 0.1, "
+                                   "0.967 / 0.888 at 0.3, 0.980 / 0.882 at 0.6, 0.979 / 0.864 at 1.")
         gps_radius_sigmas: float = Field(5.0, gt=0, description="GPS radius in fix σ when gps_radius_m is None.")
         gps_radius_fit_sigmas: float | None = Field(
             3.0, gt=0, description="When gps_radius_m is None: a segment's radius is at least this many times "

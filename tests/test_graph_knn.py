@@ -94,6 +94,9 @@ def test_stage_output_is_consistent(toy):
         assert g.conjugate_graph.edges[a, b]["shared"] == s
     assert min(d for _, d in g.street_graph.degree) >= 4  # each links to its 4 nearest (union)
     assert nx.is_connected(g.overview_graph)
+    # street nodes carry each segment's horizontal diameter for the match stages' vote
+    ext = [g.street_graph.nodes[i]["extent_m"] for i in range(S)]
+    np.testing.assert_allclose(ext, np.asarray(toy.street.extent_m, dtype=np.float64))
 
 
 def test_k_and_overview_k(toy):

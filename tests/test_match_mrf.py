@@ -121,6 +121,42 @@ def test_vote_majority_null_and_transform():
     assert match[0] == 0 and match[2] == -1 and match[3] == -1
 
 
+def test_vote_tie_needs_a_long_enough_segment():
+    """A tie between the winner's votes and the counted nulls matches only a segment at least
+    tie_min_extent_m long (graph.knn's ``extent_m`` node attribute; a missing one counts as long);
+    a strict majority matches whatever the length."""
+    se = np.array([[0, 1], [0, 2], [0, 3], [1, 2]])
+    ov = np.array([[0, 1], [0, 2], [0, 3], [1, 2]])
+    lp = np.empty((8, 2), np.int64)
+    lp[0::2], lp[1::2] = ov, ov[:, ::-1]
+
+    def graphs_with(extent):
+        g = nx.Graph()
+        g.add_nodes_from(range(4))
+        if extent is not None:
+            nx.set_node_attributes(g, dict(enumerate(extent)), "extent_m")
+        return ConjugateGraphs(street_graph=g, overview_graph=g.copy(), street_edges=se, overview_edges=ov,
+                               label_pairs=lp, conj_edges=np.zeros((0, 2), np.int64),
+                               conj_shared=np.zeros(0, np.int64), conjugate_graph=nx.Graph())
+
+    cost = np.full((4, 9), 0.5)
+    cost[:, 8] = 1.0
+    costs = DataCosts(cost=cost, theta_rad=np.zeros((4, 8)), t=np.zeros((4, 8, 2)))
+    tie = np.array([0, 8, 8, 6])  # segment 0: one vote for over-view 0, one counted null (edge 1)
+    short, long_ = graphs_with([4.0, 4.0, 4.0, 4.0]), graphs_with([7.0, 4.0, 4.0, 4.0])
+    assert vote(short, costs, tie, tie_min_extent_m=6.0)[0][0] == -1
+    assert vote(long_, costs, tie, tie_min_extent_m=6.0)[0][0] == 0
+    assert vote(short, costs, tie, tie_min_extent_m=0.0)[0][0] == 0
+    assert vote(graphs_with(None), costs, tie, tie_min_extent_m=6.0)[0][0] == 0
+    # edges 0, 1 null; edge 2 → (0, 3), edge 3 → (1, 2): segment 3 has one vote and no null, a strict
+    # majority that a short segment keeps; segments 1 and 2 tie 1:1 (their null edge's other end, 0,
+    # has a vote) and drop when short, keep when long; segment 0 loses 1:2 either way
+    match, *_ = vote(short, costs, np.array([8, 8, 4, 6]), tie_min_extent_m=6.0)
+    np.testing.assert_array_equal(match, [-1, -1, -1, 3])
+    match, *_ = vote(graphs_with([7.0, 7.0, 7.0, 4.0]), costs, np.array([8, 8, 4, 6]), tie_min_extent_m=6.0)
+    np.testing.assert_array_equal(match, [-1, 1, 2, 3])
+
+
 def _flip_street_edges(p, flip):
     """The same problem with some street edges written (k, j): label 2f ↔ 2f+1 on those rows."""
     g = p.graphs

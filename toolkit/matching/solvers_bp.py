@@ -18,8 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from toolkit.matching.mrf import MRF, ranges, segment_argmin
+from toolkit.matching.mrf import MRF, conditional_scores, ranges, segment_argmin
 from toolkit.matching.solvers_common import BestTracker, IterCallback, SolveResult
+from toolkit.matching.solvers_local import icm
 
 
 @dataclass
@@ -113,13 +114,16 @@ def _incoming_matrix(mrf: MRF, position: np.ndarray, dtype: type = np.float64):
 
 def loopy_bp(mrf: MRF, max_iters: int = 100, damping: float = 0.0, patience: int = 1,
              energy_tol: float = 1e-9, message_tol: float | None = None, stall_iters: int | None = None,
-             dtype: type = np.float64, on_iter: IterCallback | None = None) -> SolveResult:
+             dtype: type = np.float64, polish: bool = False, on_iter: IterCallback | None = None) -> SolveResult:
     """Synchronous min-sum loopy BP (module doc). Returns the lowest-energy labelling seen.
 
     Converged: the energy has not changed for ``patience`` iterations and, unless message_tol is
     None (the paper's criterion), no message entry moved by more than message_tol in the last one.
     Gives up (not converged) when the best energy has not improved for ``stall_iters`` iterations.
     dtype: of the messages; float32 halves the memory traffic of every sweep (energies stay float64).
+    polish: finish with ICM started from that labelling (never raises its energy; as TRW-S does): a
+    belief argmin is only locally consistent through the messages, so a single node can still have
+    a strictly better label given its neighbours' final labels.
     """
     n_slots = int(mrf.msg_ptr[-1])
     # Plan messages listed as rev(0..M-1): their sender values are the slots in storage order. The
@@ -157,5 +161,32 @@ def loopy_bp(mrf: MRF, max_iters: int = 100, damping: float = 0.0, patience: int
             break
         if stall_iters is not None and tracker.since_best >= stall_iters:
             break
-    return SolveResult(labels=tracker.best_labels, energy=tracker.best_energy, energy_trace=tracker.trace,
+    labels, energy = tracker.best_labels, tracker.best_energy
+    if polish:
+        # ICM from the best belief-argmin labelling and from the final messages decoded sequentially
+        # (each node conditioned on the labels already chosen for its earlier neighbours, messages
+        # standing for the later ones): two roundings of the same fixed point, keep the lower
+        starts = [labels]
+        if n_slots:
+            np.take(mp, stored_at, out=tmp, mode="clip")  # mp holds the last update (swapped above)
+            decoded = sequential_decode(mrf, tmp)
+            if not np.array_equal(decoded, labels):
+                starts.append(decoded)
+        for start in starts:
+            polished = icm(mrf, init=start)
+            if polished.energy < energy:
+                labels, energy = polished.labels, polished.energy
+    return SolveResult(labels=labels, energy=energy, energy_trace=tracker.trace,
                        iterations=it, converged=converged)
+
+
+def sequential_decode(mrf: MRF, msg: np.ndarray) -> np.ndarray:
+    """Local labels decoded node by node in index order from messages in storage order: node i takes
+    argmin D_i + Σ_{earlier j} V(·, x_j) + Σ_{later j} m_{j→i} (TRW-S's forward decoding)."""
+    x = np.zeros(mrf.n_nodes, dtype=np.int64)
+    for i in range(mrf.n_nodes):  # sequential by definition: each node sees the earlier choices
+        f, d, n = mrf.in_first[i], mrf.deg[i], mrf.n_act[i]
+        ne = int(np.count_nonzero(mrf.msg_send[f:f + d] < i))  # senders ascending: earlier rows first
+        block = msg[mrf.msg_ptr[f]:mrf.msg_ptr[f] + d * n].reshape(d, n)
+        x[i] = int(np.argmin(conditional_scores(mrf, i, x, ne) + block[ne:].sum(axis=0)))
+    return x

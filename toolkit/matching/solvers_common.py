@@ -3,8 +3,10 @@
 Voting (METHOD.md §6): each street segment collects, from every incident conjugate node (street
 edge), the over-view segment that edge's label maps it to (null when the label is null). The most
 voted over-view segment wins (ties: lower mean unary cost); the segment is null when it has no
-incident edge or when the null votes that count strictly outnumber the winner. A null edge (s, k)
-counts against s only when k has a non-null vote on some edge: when every edge of k is null, k has
+incident edge or when the null votes that count strictly outnumber the winner; a tie matches
+(optionally only a segment at least ``tie_min_extent_m`` long: a short wall fits many outlines; off
+by default, see SmoothnessParams). A null edge (s, k) counts against s only when k has a non-null
+vote on some edge: when every edge of k is null, k has
 no counterpart in this labelling (a tree, a wall the over-view lacks) and the null edge is explained
 by k, not by s. Counting those nulls left a façade with one or two matched neighbours unmatched
 beside its unmatchable ones (loopy BP on the 5 campus seeds × 3 sources: mean recall 0.916 → 0.922,
@@ -102,9 +104,10 @@ def iteration_logger(obs: Any) -> IterCallback | None:
     return log
 
 
-def vote(graphs: ConjugateGraphs, costs: DataCosts, edge_label: np.ndarray
+def vote(graphs: ConjugateGraphs, costs: DataCosts, edge_label: np.ndarray, tie_min_extent_m: float = 0.0
          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(segment_match, confidence, T2d, cost) per street segment from the edge labels (module doc)."""
+    """(segment_match, confidence, T2d, cost) per street segment from the edge labels (module doc).
+    Segment lengths are the street graph's ``extent_m`` node attribute (a missing one counts as long)."""
     n_seg = graphs.street_graph.number_of_nodes()
     se = np.asarray(graphs.street_edges, dtype=np.int64).reshape(-1, 2)
     null = graphs.null_label
@@ -137,7 +140,8 @@ def vote(graphs: ConjugateGraphs, costs: DataCosts, edge_label: np.ndarray
     order = np.lexsort((mean_cost, -cnt, useg))  # per segment: most votes, then cheapest
     first = order[np.r_[True, useg[order][1:] != useg[order][:-1]]]
     s = useg[first]
-    ok = cnt[first] >= nulls[s]
+    extent = np.array([graphs.street_graph.nodes[int(i)].get("extent_m", np.inf) for i in s], dtype=np.float64)
+    ok = (cnt[first] > nulls[s]) | ((cnt[first] == nulls[s]) & (extent >= tie_min_extent_m))
     s, win = s[ok], first[ok]
     if len(s) == 0:
         return match, conf, T2d, mcost
@@ -162,10 +166,10 @@ def vote(graphs: ConjugateGraphs, costs: DataCosts, edge_label: np.ndarray
 
 
 def to_matches(graphs: ConjugateGraphs, costs: DataCosts, mrf: MRF, result: SolveResult, obs: Any,
-               solver: str) -> Matches:
+               solver: str, tie_min_extent_m: float = 0.0) -> Matches:
     """Vote, warn about degenerate outcomes, log the final matches, build the container."""
     edge_label = mrf.to_global(result.labels) if mrf.n_nodes else np.zeros(0, np.int64)
-    match, conf, T2d, mcost = vote(graphs, costs, edge_label)
+    match, conf, T2d, mcost = vote(graphs, costs, edge_label, tie_min_extent_m)
     if mrf.n_nodes == 0:
         obs.warn(f"{solver}: the conjugate graph has no nodes (fewer than two street segments?): nothing matched")
     elif np.all(edge_label == mrf.null_label):
@@ -211,4 +215,4 @@ def solve_stage(graphs: ConjugateGraphs, costs: DataCosts, params: Any, obs: Any
             obs.warn(f"{solver} did not converge in {result.iterations} iterations (energy still changing or "
                      f"oscillating); "
                      f"keeping the lowest-energy labelling seen (E = {result.energy:.4f})")
-    return to_matches(graphs, costs, mrf, result, obs, solver)
+    return to_matches(graphs, costs, mrf, result, obs, solver, params.tie_min_extent_m)

@@ -2,7 +2,8 @@
 
 ICM starts from the winner-takes-all labelling and visits the nodes in index order, giving each the
 label minimising D_i + Σ_j V(·, l_j) for its neighbours' current labels; a label only changes on a
-strict improvement, so the energy never increases. It stops after a sweep without change.
+strict improvement, so the energy never increases. It stops after a sweep without change. Sweeps
+skip nodes none of whose neighbours changed since their last visit (they cannot improve).
 """
 
 from __future__ import annotations
@@ -27,14 +28,21 @@ def icm(mrf: MRF, max_iters: int = 50, init: np.ndarray | None = None,
     tracker = BestTracker(mrf, 1, 0.0, on_iter)
     tracker.start(x)
     converged, it = False, 0
+    # a node whose neighbours kept their labels since its last visit cannot improve: only "dirty"
+    # nodes are re-scored (the same sweeps and result as visiting every node, at a fraction of the cost)
+    dirty = np.ones(mrf.n_nodes, dtype=bool)
     for it in range(1, max_iters + 1):
         changed = 0
         for i in range(mrf.n_nodes):
+            if not dirty[i]:
+                continue
+            dirty[i] = False
             score = conditional_scores(mrf, i, x)
             best = int(np.argmin(score))
             if score[best] < score[x[i]] - 1e-12:
                 x[i] = best
                 changed += 1
+                dirty[mrf.msg_send[mrf.in_first[i]:mrf.in_first[i] + mrf.deg[i]]] = True
         tracker.step(it, x)
         if changed == 0:
             converged = True
