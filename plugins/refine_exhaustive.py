@@ -37,11 +37,11 @@ from scipy import ndimage
 from toolkit.observe import DebugPoints2D
 from toolkit.refine.blas import single_threaded_blas
 from toolkit.refine.finish import ConsistencyParams, compose, consistent, warn_rejected
-from toolkit.refine.ground3d import GroundParams, ground_step, height_source
+from toolkit.refine.ground3d import GroundParams, ground_step, height_source, prepare_ground
 from toolkit.refine.joint import JointParams, joint_transforms
 from toolkit.refine.propagate import footprint_window, predict_seed
 from toolkit.refine.route import neighbour_keys, route_positions
-from toolkit.refine.search2d import SearchParams, search_segment
+from toolkit.refine.search2d import AllOutlines, SearchParams, search_segment
 from toolkit.refine.segments import SegmentPoints, input_anchors
 from toolkit.stage import Stage, StageParams
 from toolkit.types import Matches, OverviewSegments, Scene, SegmentTransforms, StreetSegments
@@ -125,6 +125,7 @@ class Exhaustive(Stage):
         heights = height_source(scene, overview)
         boxes = ndimage.find_objects(np.asarray(overview.label_image) + 1, max_label=len(overview))
         st = _State(S, obs.wants_debug)
+        st.outlines = AllOutlines(overview.grid, overview.label_image, p.truncate_m)
         anchors = input_anchors(street)
         route_s = route_positions(street, scene, load_points(scene, "street_cloud")) if p.route_aware \
             else np.full(S, np.nan)
@@ -160,13 +161,12 @@ class Exhaustive(Stage):
         """Tilt, exhaustive 2D search and height of segment i against over-view segment o (None: all)."""
         p = self.params
         st.target[i] = (o, box, o_normal, o_height, match_conf)
-        ground, gnormals = pts.ground(i)
-        g0 = ground_step(ground, gnormals, seed, heights, o_normal, o_height, gp)
+        g0 = self._ground_step(i, seed, pts, heights, o_normal, o_height, gp, st)
         fp = pts.footprint(i, p.footprint_cell_m, p.max_footprint_points, g0.R_z, g0.centre)
         if len(fp) < 10:
             return False
-        res = search_segment(fp, seed, overview.grid, overview.label_image, o, box, sp)
-        g1 = ground_step(ground, gnormals, res.T2d, heights, o_normal, o_height, gp)
+        res = search_segment(fp, seed, overview.grid, overview.label_image, o, box, sp, st.outlines)
+        g1 = self._ground_step(i, res.T2d, pts, heights, o_normal, o_height, gp, st)
         st.T2d[i], st.R_z[i], st.t_z[i], st.centres[i] = res.T2d, g1.R_z, g1.t_z, g1.centre
         st.cost[i] = res.cost_m
         st.conf[i] = match_conf * res.inlier_ratio
@@ -174,6 +174,14 @@ class Exhaustive(Stage):
         if st.debug:
             st.shown.append((i, fp @ res.T2d[:2, :2].T + res.T2d[:2, 2]))
         return bool(st.valid[i])
+
+    @staticmethod
+    def _ground_step(i, T2d, pts, heights, o_normal, o_height, gp, st):
+        """``ground_step`` of segment i, its transform-independent part computed once per segment."""
+        ground, gnormals = pts.ground(i)
+        if i not in st.ground:
+            st.ground[i] = prepare_ground(ground, gnormals, gp)
+        return ground_step(ground, gnormals, T2d, heights, o_normal, o_height, gp, prepared=st.ground[i])
 
     def _placed_by_neighbours(self, i, known, k, street, overview, pts, st, T):
         """(seed transform, over-view window) for segment i as its k nearest ``known`` neighbours place
@@ -222,12 +230,11 @@ class Exhaustive(Stage):
         idx = np.flatnonzero(valid & np.isfinite(st.route_s))
         fps = {int(i): pts.footprint(i, p.footprint_cell_m, p.max_footprint_points) for i in idx}
         T2d = joint_transforms(fps, st.T2d, st.route_s, input_anchors(street), overview.grid,
-                               np.asarray(overview.label_image), jp)
+                               np.asarray(overview.label_image), jp, st.outlines)
         level = np.array([0.0, 0.0, 1.0])
         for i in idx:
             _, _, o_normal, o_height, _ = st.target[i] if st.target[i] is not None else (None, None, level, np.nan, 0)
-            ground, gnormals = pts.ground(i)
-            g = ground_step(ground, gnormals, T2d[i], heights, o_normal, o_height, gp)
+            g = self._ground_step(i, T2d[i], pts, heights, o_normal, o_height, gp, st)
             st.T2d[i], st.R_z[i], st.t_z[i], st.centres[i] = T2d[i], g.R_z, g.t_z, g.centre
         return compose(street, st.T2d, st.R_z, st.t_z, st.centres, valid, cp.k, obs)
 
@@ -238,7 +245,7 @@ class Exhaustive(Stage):
         tried = np.zeros(len(street), bool)
         added = 0
         for _ in range(2):          # newly registered segments can seed their own neighbours
-            todo = np.flatnonzero(~valid & ~tried & (np.array([len(pts.facade(i)) for i in range(len(street))]) >= 10))
+            todo = np.flatnonzero(~valid & ~tried & (pts.facade_counts() >= 10))
             if len(todo) == 0 or not valid.any():
                 break
             cand = np.zeros(len(street), bool)
@@ -277,5 +284,7 @@ class _State:
         self.shown: list[tuple[int, np.ndarray]] = []
         self.points = np.ones(S)
         self.target: list[tuple | None] = [None] * S
+        self.ground: dict[int, object] = {}      # segment → PreparedGround (ground3d.prepare_ground)
         self.keys = np.zeros((S, 1))
         self.route_s = np.full(S, np.nan)
+        self.outlines = None                     # search2d.AllOutlines of the over-view

@@ -261,3 +261,118 @@ def test_route_positions_follow_the_cameras_that_observe_each_segment(tmp_path):
     keys = neighbour_keys(np.column_stack([street.centroids, np.zeros(3)]), s)
     d = np.linalg.norm(keys[:, None] - keys[None], axis=2)
     assert d[0, 1] < d[0, 2]                         # the far-along-the-route pass is the farther neighbour
+
+
+@pytest.mark.parametrize("direct", [True, False])
+def test_batched_correlation_equals_the_sum_over_every_offset(direct):
+    from toolkit.refine.search2d import _correlate_valid
+
+    rng = np.random.default_rng(11)
+    sub = rng.random((23, 31))
+    k = np.zeros((5, 9, 12))
+    k[rng.random(k.shape) < 0.2] = 1.0
+    k *= rng.random(k.shape)
+    A, KH, KW = k.shape
+    ref = np.array([[[np.sum(sub[i:i + KH, j:j + KW] * k[a]) for j in range(sub.shape[1] - KW + 1)]
+                     for i in range(sub.shape[0] - KH + 1)] for a in range(A)])
+    got = _correlate_valid(sub, k, max_direct_offsets=10**6 if direct else 0)
+    assert got.shape == ref.shape and np.allclose(got, ref, atol=1e-10)
+
+
+def test_clamped_distance_transform_is_exact_up_to_the_clamp():
+    from toolkit.refine.search2d import _clamped_edt
+
+    rng = np.random.default_rng(12)
+    for _ in range(15):
+        features = rng.random((rng.integers(1, 50), rng.integers(1, 50))) < rng.uniform(0.005, 0.3)
+        features[0, 0] |= not features.any()
+        clamp = int(rng.integers(1, 8))
+        ref = ndimage.distance_transform_edt(~features)
+        got = _clamped_edt(features, clamp)
+        band = ref <= clamp
+        assert np.array_equal(got[band], ref[band])
+        assert np.all((got[~band] > clamp) & (got[~band] <= clamp + 1))
+
+
+def test_outline_field_cut_from_the_whole_grid_matches_a_window_of_its_own():
+    from toolkit.refine.search2d import AllOutlines, OutlineField
+
+    g, lab, _ = _building()
+    lab[40:60, 200:240] = 1                                   # a second building
+    whole = AllOutlines(g, lab, truncate_m=3.0)
+    r0, c0, r1, c1 = 20, 60, 160, 260
+    cut = whole.field(r0, c0, r1, c1, 3.0)
+    own = OutlineField(g, lab[r0:r1, c0:c1] >= 0, r0, c0)
+    inner = (slice(8, -8), slice(8, -8))                       # away from the window's edge
+    band = np.abs(own.sdf[inner]) <= 3.0 + 2 * g.gsd_m
+    assert np.array_equal(cut.sdf[inner][band], own.sdf[inner][band])
+    assert np.array_equal(cut.truncated(3.0)[inner], np.minimum(np.abs(own.sdf[inner]), 3.0))
+    near = np.abs(own.sdf[inner]) < 1.0 + g.gsd_m
+    assert np.allclose(cut.grad_x[inner][near], own.grad_x[inner][near])
+    assert whole.field(-1, 0, 10, 10, 3.0) is None             # leaves the image: computed on its own
+
+
+def test_search_with_the_shared_outline_field_finds_the_same_transform():
+    from toolkit.refine.search2d import AllOutlines
+
+    rng = np.random.default_rng(13)
+    g, lab, edges = _building()
+    world = _l_shape(edges, rng)
+    street = world - [500000.0, 4400000.0]
+    seed = rigid2d(np.radians(-2.0), np.array([500000.0 - 1.0, 4400000.0 + 2.0]))
+    box = ndimage.find_objects(lab + 1)[0]
+    own = search_segment(street, seed, g, lab, None, box, SearchParams())
+    shared = search_segment(street, seed, g, lab, None, box, SearchParams(), AllOutlines(g, lab, 3.0))
+    assert np.allclose(own.T2d, shared.T2d, atol=1e-9) and own.inlier_ratio == shared.inlier_ratio
+
+
+def test_thinning_by_counting_equals_thinning_by_sorting():
+    from toolkit.refine.segments import thin_xy
+
+    rng = np.random.default_rng(14)
+    xy = rng.normal(0, 20, (5000, 2)) + [3e5, 4e6]
+    cell = np.floor(xy / 0.5).astype(np.int64)
+    _, inv, counts = np.unique(cell, axis=0, return_inverse=True, return_counts=True)
+    ref = np.column_stack([np.bincount(inv.ravel(), xy[:, 0]), np.bincount(inv.ravel(), xy[:, 1])]) / counts[:, None]
+    assert np.array_equal(thin_xy(xy, 0.5, 10**6), ref)
+    sparse = np.vstack([xy[:10], xy[:1] + 5e4])                # a key range far too wide to count
+    assert len(thin_xy(sparse, 0.5, 10**6)) == len(np.unique(np.floor(sparse / 0.5), axis=0))
+
+
+def test_outline_tiles_give_the_whole_grid_field():
+    from toolkit.refine.search2d import AllOutlines
+
+    g, lab, _ = _building()
+    lab[150:170, 20:90] = 3
+    one = AllOutlines(g, lab, 3.0, tile_px=1000)              # a single tile: the whole grid at once
+    tiled = AllOutlines(g, lab, 3.0, tile_px=37)
+    a, b = one.field(5, 7, 290, 280, 3.0), tiled.field(5, 7, 290, 280, 3.0)
+    band = np.abs(a.sdf) <= 3.0 + 2 * g.gsd_m
+    assert np.array_equal(a.sdf[band], b.sdf[band]) and np.array_equal(a.truncated(3.0), b.truncated(3.0))
+    near = np.abs(a.sdf) < 1.0 + g.gsd_m
+    assert np.array_equal(a.grad_x[near], b.grad_x[near]) and np.array_equal(a.grad_y[near], b.grad_y[near])
+
+
+def test_vectorised_consistency_scores_match_a_per_segment_loop():
+    from toolkit.refine.consistency import gap_matrix
+
+    rng = np.random.default_rng(15)
+    street, T = _chain(n=14)
+    T = T.copy()
+    T[[3, 9], :3, 3] += rng.normal(0, 4.0, (2, 3))           # two bad ones
+    valid = np.ones(14, bool)
+    valid[5] = False
+    extra = [set() for _ in range(14)]
+    extra[0].add(13)
+    _, score = reject_inconsistent(T, valid, street, 3, 3.0, 0.05, 2, extra)
+    # reference: one segment at a time, on the segments left valid when scoring stopped
+    kept, _ = reject_inconsistent(T, valid, street, 3, 3.0, 0.05, 2, extra)
+    idx = np.flatnonzero(kept)
+    from scipy.spatial import cKDTree
+    _, nn = cKDTree(street[idx]).query(street[idx], k=4)
+    for row, i in enumerate(idx):
+        nb = {int(j) for j in idx[nn[row]] if j != i} | {j for j in extra[i] if kept[j] and j != i}
+        nb = np.array(sorted(nb))
+        gaps = gap_matrix(T, street, np.column_stack([np.full(len(nb), i), nb]))
+        ref = np.percentile(gaps / (3.0 + 0.05 * np.linalg.norm(street[nb] - street[i], axis=1)), 50, method="lower")
+        assert score[i] == pytest.approx(ref)

@@ -282,3 +282,17 @@ def test_cell_weights_approximate_per_point_weights_and_chunks_do_not_matter(tmp
     nearest = blend_points(p, xy, anchors, Tn, index, 0, 1.5)
     own = np.einsum("nab,nb->na", Tn[anchors, :3, :3], p) + Tn[anchors, :3, 3]
     assert np.abs(nearest - own).max() < 1e-6
+
+
+def test_cell_keys_group_points_by_anchor_then_cell_like_a_sort():
+    from toolkit.warp.blend import cell_keys
+
+    rng = np.random.default_rng(21)
+    xy = rng.uniform(-40, 60, (20000, 2))
+    anchors = rng.integers(0, 7, len(xy))
+    rows, table = cell_keys(xy, anchors, 0.5)
+    cell = np.floor(xy / 0.5).astype(np.int64)
+    keys = np.column_stack([anchors, cell])
+    uniq, inv = np.unique(keys, axis=0, return_inverse=True)
+    assert np.array_equal(rows, inv.ravel())
+    assert np.array_equal(table[:, 0], uniq[:, 0]) and np.allclose(table[:, 1:], (uniq[:, 1:] + 0.5) * 0.5)

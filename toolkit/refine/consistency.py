@@ -54,27 +54,32 @@ def reject_inconsistent(T: np.ndarray, valid: np.ndarray, anchors: np.ndarray, k
     """
     keys = anchors if keys is None else keys
     valid = valid.copy()
-    score = np.full(len(valid), np.nan)
+    S = len(valid)
+    score = np.full(S, np.nan)
+    extra = np.zeros((0, 2), np.int64)
+    if extra_neighbours is not None:
+        extra = np.array([(i, j) for i in range(S) for j in extra_neighbours[i] if j != i], np.int64).reshape(-1, 2)
     while valid.sum() > min_neighbours:
         idx = np.flatnonzero(valid)
-        tree = cKDTree(keys[idx])
         kk = min(k + 1, len(idx))
-        _, nn = tree.query(keys[idx], k=kk)
+        _, nn = cKDTree(keys[idx]).query(keys[idx], k=kk)
         nn = idx[np.atleast_2d(nn)]
+        pairs = np.column_stack([np.repeat(idx, nn.shape[1]), nn.ravel()])
+        pairs = np.concatenate([pairs, extra[valid[extra[:, 0]] & valid[extra[:, 1]]]])
+        pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+        pairs = np.unique(pairs[:, 0] * S + pairs[:, 1])          # each (segment, neighbour) once
+        pairs = np.column_stack(np.divmod(pairs, S))
+        dist = np.linalg.norm(anchors[pairs[:, 1]] - anchors[pairs[:, 0]], axis=1)
+        ratio = gap_matrix(T, anchors, pairs) / (tol_m + tol_ratio * dist)
+        # lower median per segment: rejected only when most neighbours disagree, so the good
+        # segments bordering a group of wrong ones are not eroded (a tie keeps the segment)
+        order = np.lexsort((ratio, pairs[:, 0]))
+        seg = pairs[order, 0]
+        count = np.bincount(seg, minlength=S)
+        start = np.searchsorted(seg, np.arange(S))
+        judge = count >= max(min_neighbours, 1)
         score[:] = np.nan
-        for row, i in enumerate(idx):
-            nb = {int(j) for j in nn[row] if j != i}
-            if extra_neighbours is not None:
-                nb |= {j for j in extra_neighbours[i] if valid[j] and j != i}
-            if len(nb) < min_neighbours:
-                continue
-            nb_arr = np.fromiter(nb, dtype=np.int64)
-            pairs = np.column_stack([np.full(len(nb_arr), i), nb_arr])
-            gaps = gap_matrix(T, anchors, pairs)
-            dist = np.linalg.norm(anchors[nb_arr] - anchors[i], axis=1)
-            # lower median: rejected only when most neighbours disagree, so the good segments
-            # bordering a group of wrong ones are not eroded (a tie keeps the segment)
-            score[i] = float(np.percentile(gaps / (tol_m + tol_ratio * dist), 50, method="lower"))
+        score[judge] = ratio[order][start[judge] + (count[judge] - 1) // 2]
         judged = valid if protected is None else valid & ~protected
         worst = int(np.nanargmax(np.where(judged, score, np.nan))) if np.isfinite(score[judged]).any() else -1
         if worst < 0 or score[worst] <= 1.0:

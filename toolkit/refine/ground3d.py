@@ -44,19 +44,23 @@ class HeightGrid:
     """Heights on a raster grid, sampled bilinearly (NaN where unknown)."""
 
     def __init__(self, heights: np.ndarray, grid: Grid) -> None:
-        self.h, self.grid = np.asarray(heights, np.float64), grid
+        self.h, self.grid = np.ascontiguousarray(heights, np.float64), grid
 
     def sample(self, xy: np.ndarray) -> np.ndarray:
-        rc = self.grid.world_to_pixel(xy)
+        a, b, c, d, e, f = self.grid.transform           # Grid.world_to_pixel, without its stacking
+        det = a * e - b * d
+        dx, dy = xy[:, 0] - c, xy[:, 1] - f
+        row = (-d * dx + a * dy) / det - 0.5
+        col = (e * dx - b * dy) / det - 0.5
         H, W = self.h.shape
-        r0 = np.floor(rc[:, 0]).astype(np.int64)
-        c0 = np.floor(rc[:, 1]).astype(np.int64)
+        r0, c0 = np.floor(row), np.floor(col)
         ok = (r0 >= 0) & (c0 >= 0) & (r0 < H - 1) & (c0 < W - 1)
         out = np.full(len(xy), np.nan)
-        r, c = r0[ok], c0[ok]
-        fr, fc = rc[ok, 0] - r, rc[ok, 1] - c
-        out[ok] = (self.h[r, c] * (1 - fr) * (1 - fc) + self.h[r, c + 1] * (1 - fr) * fc
-                   + self.h[r + 1, c] * fr * (1 - fc) + self.h[r + 1, c + 1] * fr * fc)
+        fr, fc = row[ok] - r0[ok], col[ok] - c0[ok]
+        r, c = r0[ok].astype(np.int64), c0[ok].astype(np.int64)
+        flat, at = self.h.ravel(), r * W + c            # flat gathers: ~2× faster than 2D indexing
+        out[ok] = (flat.take(at) * (1 - fr) * (1 - fc) + flat.take(at + 1) * (1 - fr) * fc
+                   + flat.take(at + W) * fr * (1 - fc) + flat.take(at + W + 1) * fr * fc)
         return out
 
 
@@ -82,11 +86,34 @@ def height_source(scene: Scene, overview: OverviewSegments) -> HeightGrid | None
 
 
 def trimmed_mean(x: np.ndarray, lo: float, hi: float) -> float:
-    x = np.sort(x[np.isfinite(x)])
+    """Mean of the [lo, hi) quantile slice of the finite values (a partial sort: only the slice's
+    bounds are ordered, its members are the same as a full sort's)."""
+    x = x[np.isfinite(x)]
     if len(x) == 0:
         return float("nan")
     a, b = int(np.floor(lo * len(x))), max(int(np.ceil(hi * len(x))), int(np.floor(lo * len(x))) + 1)
+    b = min(b, len(x))
+    x.partition(sorted({a, b - 1}))                  # in place: x is already a copy
     return float(x[a:b].mean())
+
+
+@dataclass(frozen=True)
+class PreparedGround:
+    """What the ground step needs of a segment's ground points independently of its transform."""
+
+    centre: np.ndarray                 # (3,) median ground point (R_Z turns about it)
+    street_normal: np.ndarray | None   # levelled street ground normal (None: unknown)
+    xy: np.ndarray                     # (G,2) contiguous levelled x, y of the ground points
+    relative: np.ndarray               # (G,3) ground points minus the centre
+
+
+def prepare_ground(points: np.ndarray, normals: np.ndarray | None, p: GroundParams) -> PreparedGround | None:
+    """The transform-independent part of ``ground_step`` (None when too few ground points)."""
+    if len(points) < p.min_ground_points:
+        return None
+    centre = np.median(points, axis=0)
+    return PreparedGround(centre, street_ground_normal(points, normals, p), np.ascontiguousarray(points[:, :2]),
+                          points - centre)
 
 
 def street_ground_normal(points: np.ndarray, normals: np.ndarray | None, p: GroundParams) -> np.ndarray | None:
@@ -104,12 +131,15 @@ def street_ground_normal(points: np.ndarray, normals: np.ndarray | None, p: Grou
 
 
 def _plane_normal(xyz: np.ndarray, p: GroundParams) -> np.ndarray | None:
-    """Least-squares plane z = a x + b y + c (None when the points span too little area)."""
+    """Least-squares plane z = a x + b y + c (None when the points span too little area), from the
+    3×3 scatter of the centred points (normal equations; the intercept decouples once centred)."""
     q = xyz - xyz.mean(axis=0)
-    if np.sqrt(np.linalg.eigvalsh(np.cov(q[:, :2].T))[0]) < p.min_spread_m:
+    S = q.T @ q
+    sxx, sxy, syy = S[0, 0], S[0, 1], S[1, 1]
+    smallest = 0.5 * (sxx + syy) - np.sqrt(0.25 * (sxx - syy) ** 2 + sxy ** 2)   # of the xy scatter
+    if not len(q) > 1 or np.sqrt(max(smallest, 0.0) / (len(q) - 1)) < p.min_spread_m:
         return None
-    A = np.column_stack([q[:, 0], q[:, 1], np.ones(len(q))])
-    coef, *_ = np.linalg.lstsq(A, q[:, 2], rcond=None)
+    coef = np.linalg.solve(S[:2, :2], S[:2, 2])
     n = np.array([-coef[0], -coef[1], 1.0])
     n /= np.linalg.norm(n)
     return n if n[2] >= np.cos(np.radians(p.normal_max_angle_deg)) else None
@@ -117,16 +147,20 @@ def _plane_normal(xyz: np.ndarray, p: GroundParams) -> np.ndarray | None:
 
 def ground_step(ground: np.ndarray, ground_normals: np.ndarray | None, T2d: np.ndarray,
                 heights: HeightGrid | None, overview_normal: np.ndarray, overview_height: float,
-                p: GroundParams) -> GroundResult:
+                p: GroundParams, prepared: PreparedGround | None = None) -> GroundResult:
     """R_Z and t_z for one segment. ``ground``: (G,3) levelled ground points of the segment.
 
     ``overview_normal`` / ``overview_height``: the over-view segment's terrain normal and height,
-    used when the height source cannot give them at the segment's ground points.
+    used when the height source cannot give them at the segment's ground points. ``prepared``:
+    ``prepare_ground`` of the same points (computed here when not given; pass it when the segment
+    is stepped several times).
     """
     if len(ground) < p.min_ground_points:
         return GroundResult(np.eye(3), float("nan"), np.zeros(3), 0.0, len(ground))  # filled later
-    centre = np.median(ground, axis=0)
-    world_xy = ground[:, :2] @ T2d[:2, :2].T + T2d[:2, 2]
+    if prepared is None:
+        prepared = prepare_ground(ground, ground_normals, p)
+    centre = prepared.centre
+    world_xy = prepared.xy @ np.ascontiguousarray(T2d[:2, :2].T) + T2d[:2, 2]
     h = heights.sample(world_xy) if heights is not None else np.full(len(ground), np.nan)
     dz = h - ground[:, 2]
     t0 = trimmed_mean(dz, p.trim_low, p.trim_high)
@@ -139,13 +173,13 @@ def ground_step(ground: np.ndarray, ground_normals: np.ndarray | None, T2d: np.n
         n_over = np.asarray(overview_normal, np.float64)
     R2 = np.eye(3)
     R2[:2, :2] = T2d[:2, :2]
-    n_street = street_ground_normal(ground, ground_normals, p)
+    n_street = prepared.street_normal
     R_z = np.eye(3)
     if n_street is not None:
         R_z = rotation_between(n_street, R2.T @ n_over)
         if tilt_deg(R_z) > p.max_tilt_deg:
             R_z = np.eye(3)
-    z_new = (ground - centre) @ R_z[2] + centre[2]
+    z_new = prepared.relative @ R_z[2] + centre[2]
     if np.isfinite(t0):
         t_z = trimmed_mean(h - z_new, p.trim_low, p.trim_high)
     else:

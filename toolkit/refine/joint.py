@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from toolkit.refine.search2d import SearchParams, search_segment
+from toolkit.refine.search2d import AllOutlines, SearchParams, search_segment
 from toolkit.refine.segments import thin_xy
 from toolkit.types import Grid
 
@@ -44,13 +44,15 @@ class JointParams:
 
 def joint_transforms(footprints: dict[int, np.ndarray], T2d: np.ndarray, route_s: np.ndarray,
                      anchors_xy: np.ndarray, grid: Grid, label_image: np.ndarray,
-                     p: JointParams) -> np.ndarray:
+                     p: JointParams, outlines: AllOutlines | None = None) -> np.ndarray:
     """(S,3,3) jointly re-estimated 2D transforms (levelled → scene) of the segments in ``footprints``
     (their levelled footprints); the others keep T2d. ``route_s``: (S,) metres along the route;
-    ``anchors_xy``: (S,2) segment centres in the street frame (for the spatial gate)."""
+    ``anchors_xy``: (S,2) segment centres in the street frame (for the spatial gate); ``outlines``:
+    the over-view's outline field, shared with other searches (made here when not given)."""
     sp = SearchParams(p.rotation_deg, p.rotation_step_deg, 0.0, p.truncate_m, p.inlier_m, 0.0, True)
     idx = np.array(sorted(i for i in footprints if np.isfinite(route_s[i])), np.int64)
     out = np.array(T2d, np.float64, copy=True)
+    outlines = outlines if outlines is not None else AllOutlines(grid, label_image, p.truncate_m)
     r = int(np.ceil(p.shift_m / grid.gsd_m))
     for i in idx:
         near = idx[(np.abs(route_s[idx] - route_s[i]) <= p.window_m)
@@ -61,5 +63,5 @@ def joint_transforms(footprints: dict[int, np.ndarray], T2d: np.ndarray, route_s
         centre = (fp @ T2d[i][:2, :2].T + T2d[i][:2, 2]).mean(axis=0)
         cr, cc = np.round(grid.world_to_pixel(centre[None])[0]).astype(int)
         box = (slice(cr - r, cr + r + 1), slice(cc - r, cc + r + 1))
-        out[i] = search_segment(fp, T2d[i], grid, label_image, None, box, sp).T2d
+        out[i] = search_segment(fp, T2d[i], grid, label_image, None, box, sp, outlines).T2d
     return out

@@ -38,8 +38,10 @@ def sparse_segments(model: SparseModel, dense: np.ndarray, carrier: np.ndarray, 
         return out
     if len(idx) > MAX_TREE_POINTS:
         idx = idx[np.linspace(0, len(idx) - 1, MAX_TREE_POINTS).astype(np.int64)]
-    d, nn = cKDTree(dense[idx]).query(model.points3d, distance_upper_bound=max_gap_m,
-                                      workers=workers_for(len(model.points3d)))
+    # a tree over the dense points, queried by the few sparse ones: its build dominates, and an
+    # unbalanced, non-compacted build is ~2× faster to make for the same nearest neighbours
+    tree = cKDTree(dense[idx], balanced_tree=False, compact_nodes=False)
+    d, nn = tree.query(model.points3d, distance_upper_bound=max_gap_m, workers=workers_for(len(model.points3d)))
     return np.where(np.isfinite(d), carrier[idx[np.minimum(nn, len(idx) - 1)]], -1)
 
 

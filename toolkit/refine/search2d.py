@@ -8,6 +8,12 @@ Exact and fast: for each rotation the points are splatted (bilinear weights) int
 image; the chamfer cost of *every* integer offset is then one cross-correlation of the distance
 map with that kernel (FFT). Integer shifts keep each point's sub-pixel phase, so this equals
 evaluating the bilinearly interpolated distance map at each offset — the full grid, no coarse step.
+All rotations are splatted into one kernel frame and correlated together: one batched FFT sharing
+the distance map's transform (per-segment searches, thousands of offsets), or, for the joint pass's
+few offsets and large footprints, one gather of the map under every kernel entry used by any
+rotation and one matrix product (campus, DSM: the refine stage's correlations 3.2 s → 1.1 s CPU).
+Searches against every outline (``seg = None``) cut their distance map from one field per over-view
+(``AllOutlines``) instead of two distance transforms each.
 The optimum is then refined below one pixel: a parabola through the neighbouring grid costs, then a
 few Gauss-Newton steps on the signed distance (point-to-outline least squares, inliers only).
 
@@ -21,7 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
-from scipy.signal import fftconvolve
+from numpy.lib.stride_tricks import sliding_window_view
+from scipy.fft import fft, ifft, irfft, next_fast_len, rfft, rfft2
 
 from toolkit.refine.transforms import rigid2d
 from toolkit.types import Grid
@@ -52,18 +59,37 @@ class OutlineField:
     """Signed distance (metres, + outside) to one segment's mask edge, on a window of the grid."""
 
     def __init__(self, grid: Grid, mask_window: np.ndarray, row0: int, col0: int) -> None:
-        gsd = grid.gsd_m
-        inside = mask_window.astype(bool)
-        d_out = ndimage.distance_transform_edt(~inside)
-        d_in = ndimage.distance_transform_edt(inside)
-        self.sdf = np.where(inside, -(d_in - 0.5), d_out - 0.5) * gsd
+        stacked = _signed_distance_and_gradient(grid, mask_window.astype(bool))
+        self._set(grid, stacked, row0, col0)
+
+    def _set(self, grid: Grid, stacked: np.ndarray, row0: int, col0: int, trunc: np.ndarray | None = None) -> None:
         self.grid, self.row0, self.col0 = grid, row0, col0
-        a, b, _, d, e, _ = grid.transform
-        # world gradient = J^-T (d/dcol, d/drow), J maps (dcol, drow) → (dx, dy)
-        jinv_t = np.linalg.inv(np.array([[a, b], [d, e]])).T
-        g_r, g_c = np.gradient(self.sdf)
-        self.grad_x = jinv_t[0, 0] * g_c + jinv_t[0, 1] * g_r
-        self.grad_y = jinv_t[1, 0] * g_c + jinv_t[1, 1] * g_r
+        self._stacked = stacked                         # (h,w,3): signed distance, d/dx, d/dy
+        self.sdf, self.grad_x, self.grad_y = stacked[..., 0], stacked[..., 1], stacked[..., 2]
+        self._trunc = trunc
+
+    def truncated(self, truncate_m: float) -> np.ndarray:
+        """min(|signed distance|, truncate_m) on the window."""
+        if self._trunc is None:
+            return np.minimum(np.abs(self.sdf), truncate_m)
+        return self._trunc
+
+    def sample_with_gradient(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(inside (N,) bool, (M,3) signed distance, d/dx, d/dy at the M points inside the window):
+        one bilinear gather of the three fields stacked per pixel."""
+        h, w = self.sdf.shape
+        a, b, c, d, e, f = self.grid.transform       # Grid.world_to_pixel, without its stacking
+        det = a * e - b * d
+        dx, dy = xy[:, 0] - c, xy[:, 1] - f
+        row = (-d * dx + a * dy) / det - 0.5 - self.row0
+        col = (e * dx - b * dy) / det - 0.5 - self.col0
+        r0, c0 = np.floor(row), np.floor(col)
+        inside = (r0 >= 0) & (c0 >= 0) & (r0 < h - 1) & (c0 < w - 1)
+        fr, fc = (row - r0)[inside, None], (col - c0)[inside, None]
+        corners = (r0[inside].astype(np.int64) * w + c0[inside].astype(np.int64))[:, None] + np.array([0, 1, w, w + 1])
+        weights = np.concatenate([(1 - fr) * (1 - fc), (1 - fr) * fc, fr * (1 - fc), fr * fc], axis=1)
+        values = self._stacked.reshape(h * w, 3).take(corners, axis=0)        # (M,4,3)
+        return inside, np.einsum("mk,mkf->mf", weights, values)
 
     def to_window(self, xy: np.ndarray) -> np.ndarray:
         rc = self.grid.world_to_pixel(xy)
@@ -90,31 +116,140 @@ def _bilinear(arr: np.ndarray, rc: np.ndarray, outside: float) -> np.ndarray:
     return out
 
 
-def _splat(rc: np.ndarray) -> tuple[np.ndarray, int, int]:
-    """Bilinear splat of fractional (row, col) into a kernel; returns kernel and its top-left."""
-    base_r, base_c = int(np.floor(rc[:, 0].min())), int(np.floor(rc[:, 1].min()))
-    r = rc[:, 0] - base_r
-    c = rc[:, 1] - base_c
+def _signed_distance_and_gradient(grid: Grid, inside: np.ndarray, clamp_px: int | None = None) -> np.ndarray:
+    """(h,w,3) signed distance to the edge of the ``inside`` mask (metres, + outside; the edge runs
+    between inside and outside pixel centres) and its world gradient (d/dx, d/dy).
+
+    ``clamp_px``: distances are only needed up to this many pixels (exact up to it, somewhere in
+    (clamp_px, clamp_px + 1] beyond): a separable pass over ±clamp_px rows instead of scipy's exact
+    transform (~3× faster on a whole over-view grid).
+    """
+    if clamp_px is None:
+        d_out = ndimage.distance_transform_edt(~inside)
+        d_in = ndimage.distance_transform_edt(inside)
+    else:
+        d_out, d_in = _clamped_edt(inside, clamp_px), _clamped_edt(~inside, clamp_px)
+    out = np.empty(inside.shape + (3,))
+    out[..., 0] = np.where(inside, -(d_in - 0.5), d_out - 0.5) * grid.gsd_m
+    a, b, _, d, e, _ = grid.transform
+    # world gradient = J^-T (d/dcol, d/drow), J maps (dcol, drow) → (dx, dy)
+    jinv_t = np.linalg.inv(np.array([[a, b], [d, e]])).T
+    g_r, g_c = np.gradient(out[..., 0])
+    out[..., 1] = jinv_t[0, 0] * g_c + jinv_t[0, 1] * g_r
+    out[..., 2] = jinv_t[1, 0] * g_c + jinv_t[1, 1] * g_r
+    return out
+
+
+def _clamped_edt(features: np.ndarray, clamp_px: int) -> np.ndarray:
+    """Euclidean distance (pixels) from every pixel to the nearest True pixel of ``features`` where it
+    is at most ``clamp_px`` (equal to scipy's ``distance_transform_edt(~features)`` there), a value in
+    (clamp_px, clamp_px + 1] elsewhere. Separable: exact distances along rows, then the minimum of
+    g(r + dy)² + dy² over |dy| ≤ clamp_px (a nearer feature cannot be more rows away)."""
+    h, w = features.shape
+    far = clamp_px + 1
+    cols = np.arange(w, dtype=np.int32)
+    left = np.maximum.accumulate(np.where(features, cols, np.int32(-2 * far - w)), axis=1)
+    right = np.minimum.accumulate(np.where(features, cols, np.int32(2 * far + 2 * w))[:, ::-1], axis=1)[:, ::-1]
+    g = np.minimum(np.minimum(cols - left, right - cols), far)
+    g2 = g * g
+    d2 = g2.copy()
+    for dy in range(1, min(clamp_px, h - 1) + 1):
+        np.minimum(d2[dy:], g2[:-dy] + dy * dy, out=d2[dy:])
+        np.minimum(d2[:-dy], g2[dy:] + dy * dy, out=d2[:-dy])
+    return np.sqrt(np.minimum(d2, far * far).astype(np.float64))
+
+
+class AllOutlines:
+    """The outline field of every over-view segment together (``seg = None`` searches), computed
+    once per tile of the grid, when a search window first touches it, and cut to each window
+    (instead of two distance transforms per search: the joint pass alone runs ~130 searches on
+    windows of ~250² pixels; on campus the windows touch ~20 % of the grid).
+
+    Only distances up to the truncation plus the reach of a bilinear sample and of a central
+    difference are ever used, so a tile is computed with a halo of that many pixels and its
+    distances clamped beyond: exactly the whole-grid field where it matters.
+
+    A window cut from it holds the distance to the nearest outline anywhere in the image; one
+    computed on the window alone only sees outlines inside the window, so the two differ within
+    ``truncate_m`` of the window's edge when an outline lies just outside it (the cut is the true
+    distance there). Windows reaching beyond the image are computed on their own as before.
+    """
+
+    def __init__(self, grid: Grid, label_image: np.ndarray, truncate_m: float, tile_px: int = 128) -> None:
+        self.grid, self.labels, self.truncate_m = grid, np.asarray(label_image), truncate_m
+        self.TILE = tile_px
+        h, w = self.labels.shape
+        self._clamp = int(np.ceil(truncate_m / grid.gsd_m)) + 3
+        self._done = np.zeros((-(-h // self.TILE), -(-w // self.TILE)), bool)
+        self._stacked: np.ndarray | None = None        # (h,w,3), filled tile by tile
+        self._trunc: np.ndarray | None = None
+
+    def field(self, r0: int, c0: int, r1: int, c1: int, truncate_m: float) -> OutlineField | None:
+        """The field on rows r0:r1, cols c0:c1 (None when the window leaves the image or the
+        truncation differs)."""
+        h, w = self.labels.shape
+        if r0 < 0 or c0 < 0 or r1 > h or c1 > w or r1 <= r0 or c1 <= c0 or truncate_m != self.truncate_m:
+            return None
+        if self._stacked is None:
+            self._stacked, self._trunc = np.empty((h, w, 3)), np.empty((h, w))
+        t = self.TILE
+        for ti in range(r0 // t, (r1 - 1) // t + 1):
+            for tj in range(c0 // t, (c1 - 1) // t + 1):
+                if not self._done[ti, tj]:
+                    self._compute_tile(ti, tj)
+        f = OutlineField.__new__(OutlineField)
+        f._set(self.grid, np.ascontiguousarray(self._stacked[r0:r1, c0:c1]), r0, c0, self._trunc[r0:r1, c0:c1])
+        return f
+
+    def _compute_tile(self, ti: int, tj: int) -> None:
+        h, w = self.labels.shape
+        t, halo = self.TILE, self._clamp + 2
+        R0, C0 = ti * t, tj * t
+        R1, C1 = min(R0 + t, h), min(C0 + t, w)
+        a0, b0, a1, b1 = max(R0 - halo, 0), max(C0 - halo, 0), min(R1 + halo, h), min(C1 + halo, w)
+        tile = _signed_distance_and_gradient(self.grid, self.labels[a0:a1, b0:b1] >= 0, self._clamp)
+        core = tile[R0 - a0:R1 - a0, C0 - b0:C1 - b0]
+        self._stacked[R0:R1, C0:C1] = core
+        self._trunc[R0:R1, C0:C1] = np.minimum(np.abs(core[..., 0]), self.truncate_m)
+        self._done[ti, tj] = True
+
+
+def _splat_stack(rc: np.ndarray) -> tuple[np.ndarray, int, int]:
+    """Bilinear splats of A sets of fractional (row, col) (A,N,2) into one kernel frame: (A,KH,KW)
+    kernels and the frame's top-left pixel (row, col), shared by every set."""
+    base_r, base_c = int(np.floor(rc[..., 0].min())), int(np.floor(rc[..., 1].min()))
+    r = rc[..., 0] - base_r
+    c = rc[..., 1] - base_c
     r0, c0 = np.floor(r).astype(np.int64), np.floor(c).astype(np.int64)
     fr, fc = r - r0, c - c0
+    A = rc.shape[0]
     h, w = int(r0.max()) + 2, int(c0.max()) + 2
-    k = np.zeros(h * w)
-    for dr, dc, wt in ((0, 0, (1 - fr) * (1 - fc)), (0, 1, (1 - fr) * fc), (1, 0, fr * (1 - fc)), (1, 1, fr * fc)):
-        k += np.bincount((r0 + dr) * w + (c0 + dc), weights=wt, minlength=h * w)
-    return k.reshape(h, w), base_r, base_c
+    at = (np.arange(A, dtype=np.int64) * (h * w))[:, None] + r0 * w + c0
+    keys = np.stack([at, at + 1, at + w, at + w + 1])
+    weights = np.stack([(1 - fr) * (1 - fc), (1 - fr) * fc, fr * (1 - fc), fr * fc])
+    k = np.bincount(keys.ravel(), weights=weights.ravel(), minlength=A * h * w)
+    return k.reshape(A, h, w), base_r, base_c
 
 
 def _correlate_valid(sub: np.ndarray, k: np.ndarray, max_direct_offsets: int = 121) -> np.ndarray:
-    """out[i, j] = Σ_uv sub[i+u, j+v]·k[u, v] over the valid offsets (i, j): gathered directly when
-    there are few offsets (the joint pass searches ±4 px with a large kernel: ~2× faster than an
-    FFT there), else by FFT."""
-    n_r, n_c = sub.shape[0] - k.shape[0] + 1, sub.shape[1] - k.shape[1] + 1
+    """out[a, i, j] = Σ_uv sub[i+u, j+v]·k[a, u, v] over the valid offsets (i, j), for a stack of
+    kernels k (A,KH,KW): gathered directly when there are few offsets (the joint pass searches ±4 px
+    with a large kernel), else by one batched FFT (the transform of ``sub`` is shared by all
+    kernels; a circular correlation of ``sub``'s size leaves the valid offsets unwrapped)."""
+    A, KH, KW = k.shape
+    n_r, n_c = sub.shape[0] - KH + 1, sub.shape[1] - KW + 1
     if n_r * n_c > max_direct_offsets:
-        return fftconvolve(sub, k[::-1, ::-1], mode="valid")
-    nz_r, nz_c = np.nonzero(k)
-    off_r, off_c = np.divmod(np.arange(n_r * n_c), n_c)
-    idx = (off_r * sub.shape[1] + off_c)[:, None] + (nz_r * sub.shape[1] + nz_c)[None, :]
-    return (sub.ravel()[idx] @ k[nz_r, nz_c]).reshape(n_r, n_c)
+        P, Q = next_fast_len(sub.shape[0], False), next_fast_len(sub.shape[1], True)
+        # pruned 2D transforms: the kernels' rows beyond KH are zero (row transforms of KH rows
+        # only), and only the n_r valid output rows are transformed back along the rows
+        spec = fft(rfft(k[:, ::-1, ::-1], n=Q, axis=2), n=P, axis=1) * rfft2(sub, s=(P, Q))[None]
+        rows = ifft(spec, axis=1)[:, KH - 1:KH - 1 + n_r]
+        return irfft(rows, n=Q, axis=2)[:, :, KW - 1:KW - 1 + n_c]
+    kernels = k.reshape(A, KH * KW)
+    used = np.flatnonzero((kernels != 0).any(axis=0))      # entries of any rotation (they overlap a lot)
+    u, v = np.divmod(used, KW)
+    blocks = sliding_window_view(sub, (n_r, n_c))[u, v].reshape(len(used), n_r * n_c)   # sub under each entry
+    return (kernels[:, used] @ blocks).reshape(A, n_r, n_c)
 
 
 def _parabola(cm: float, c0: float, cp: float) -> float:
@@ -125,11 +260,13 @@ def _parabola(cm: float, c0: float, cp: float) -> float:
 
 
 def search_segment(street_xy: np.ndarray, T_seed: np.ndarray, grid: Grid, label_image: np.ndarray,
-                   seg: int | None, bbox: tuple[slice, slice], p: SearchParams) -> SearchResult:
+                   seg: int | None, bbox: tuple[slice, slice], p: SearchParams,
+                   outlines: AllOutlines | None = None) -> SearchResult:
     """Best 2D rigid transform of ``street_xy`` (levelled) onto over-view segment ``seg``.
 
     ``bbox``: the (row, col) slices of the window the footprint centre may move in (before the
-    margin); ``seg = None`` takes the outline of every over-view segment in the window.
+    margin); ``seg = None`` takes the outline of every over-view segment in the window (cut from
+    ``outlines`` when given: one field for all such searches on the same over-view).
     """
     gsd = grid.gsd_m
     seed_xy = street_xy @ T_seed[:2, :2].T + T_seed[:2, 2]
@@ -144,31 +281,28 @@ def search_segment(street_xy: np.ndarray, T_seed: np.ndarray, grid: Grid, label_
     dc0 = int(np.floor(min(0.0, cs.start - margin - c_rc[1])))
     dc1 = int(np.ceil(max(0.0, cs.stop - 1 + margin - c_rc[1])))
 
-    kernels = []
     rel = seed_xy - centre
-    for ang in angles:
-        c, s = np.cos(ang), np.sin(ang)
-        xy = rel @ np.array([[c, s], [-s, c]]) + centre
-        kernels.append(_splat(grid.world_to_pixel(xy)))
-    win_r0 = min(br for _, br, _ in kernels) + dr0 - 1
-    win_c0 = min(bc for _, _, bc in kernels) + dc0 - 1
-    win_r1 = max(br + k.shape[0] for k, br, _ in kernels) + dr1 + 1
-    win_c1 = max(bc + k.shape[1] for k, _, bc in kernels) + dc1 + 1
-    labels = _window(label_image, win_r0, win_c0, win_r1, win_c1, fill=-1)
-    mask = labels >= 0 if seg is None else labels == seg
-    field = OutlineField(grid, mask, win_r0, win_c0)
-    trunc = np.minimum(np.abs(field.sdf), p.truncate_m)
+    cos, sin = np.cos(angles)[:, None], np.sin(angles)[:, None]
+    xy = np.stack([rel[:, 0] * cos - rel[:, 1] * sin, rel[:, 0] * sin + rel[:, 1] * cos], axis=-1) + centre
+    kernels, k_r0, k_c0 = _splat_stack(grid.world_to_pixel(xy))       # (A,KH,KW), one frame for all rotations
+    KH, KW = kernels.shape[1:]
+    win_r0, win_c0 = k_r0 + dr0 - 1, k_c0 + dc0 - 1
+    win_r1, win_c1 = k_r0 + KH + dr1 + 1, k_c0 + KW + dc1 + 1
+    field = None
+    if seg is None and outlines is not None:
+        field = outlines.field(win_r0, win_c0, win_r1, win_c1, p.truncate_m)
+    if field is None:
+        labels = _window(label_image, win_r0, win_c0, win_r1, win_c1, fill=-1)
+        field = OutlineField(grid, labels >= 0 if seg is None else labels == seg, win_r0, win_c0)
+    trunc = field.truncated(p.truncate_m)
 
     n = len(street_xy)
     dr = np.arange(dr0, dr1 + 1)[:, None]
     dc = np.arange(dc0, dc1 + 1)[None, :]
     a, b, _, d, e, _ = grid.transform
     shift_m = np.hypot(a * dc + b * dr, d * dc + e * dr)
-    costs = np.empty((len(angles), dr1 - dr0 + 1, dc1 - dc0 + 1))
-    for i, (k, br, bc) in enumerate(kernels):
-        r_lo, c_lo = br + dr0 - win_r0, bc + dc0 - win_c0
-        sub = trunc[r_lo:r_lo + (dr1 - dr0) + k.shape[0], c_lo:c_lo + (dc1 - dc0) + k.shape[1]]
-        costs[i] = _correlate_valid(sub, k) / n + p.shift_penalty * shift_m
+    sub = trunc[1:1 + (dr1 - dr0) + KH, 1:1 + (dc1 - dc0) + KW]
+    costs = _correlate_valid(sub, kernels) / n + p.shift_penalty * shift_m
     ki, ri, ci = np.unravel_index(int(np.argmin(costs)), costs.shape)
     ang, off_r, off_c = float(angles[ki]), float(ri + dr0), float(ci + dc0)
     if p.subpixel:
@@ -185,12 +319,13 @@ def search_segment(street_xy: np.ndarray, T_seed: np.ndarray, grid: Grid, label_
         return np.minimum(np.abs(field.sample(xy, outside=p.truncate_m)), p.truncate_m)
 
     T_grid = _about(ang, centre, shift) @ T_seed
-    T_best = T_grid
+    T_best, d_final = T_grid, chamfer(T_grid)
     if p.subpixel:
         T_gn = _gauss_newton(street_xy, T_grid, field, p)
-        if T_gn is not None and chamfer(T_gn).mean() <= chamfer(T_grid).mean() + 1e-6:
-            T_best = T_gn
-    d_final = chamfer(T_best)
+        if T_gn is not None:
+            d_gn = chamfer(T_gn)
+            if d_gn.mean() <= d_final.mean() + 1e-6:
+                T_best, d_final = T_gn, d_gn
     moved = (street_xy @ T_best[:2, :2].T + T_best[:2, 2]).mean(axis=0) - centre
     rot = np.degrees(np.arctan2(T_best[1, 0], T_best[0, 0]) - np.arctan2(T_seed[1, 0], T_seed[0, 0]))
     return SearchResult(
@@ -221,17 +356,21 @@ def _gauss_newton(street_xy: np.ndarray, T0: np.ndarray, field: OutlineField, p:
     """Point-to-outline least squares on the signed distance (inliers within inlier_m)."""
     T = T0.copy()
     for _ in range(iterations):
-        xy = street_xy @ T[:2, :2].T + T[:2, 2]
-        s = field.sample(xy)
-        ok = np.isfinite(s) & (np.abs(s) < p.inlier_m)
-        if ok.sum() < 6:
+        xy = street_xy @ np.ascontiguousarray(T[:2, :2].T) + T[:2, 2]
+        inside, sg = field.sample_with_gradient(xy)
+        near = np.abs(sg[:, 0]) < p.inlier_m
+        if np.count_nonzero(near) < 6:
             return None
-        gx, gy = field.sample(xy[ok], field.grad_x), field.sample(xy[ok], field.grad_y)
-        c = xy[ok].mean(axis=0)
-        rx, ry = xy[ok, 0] - c[0], xy[ok, 1] - c[1]
-        J = np.column_stack([gx * -ry + gy * rx, gx, gy])
-        H = J.T @ J + 1e-6 * np.eye(3)
-        step = -np.linalg.solve(H, J.T @ s[ok])
+        sg, xy = sg[near], xy[inside][near]
+        c = xy.mean(axis=0)
+        rx, ry = xy[:, 0] - c[0], xy[:, 1] - c[1]
+        J = np.empty((len(sg), 3))
+        J[:, 0] = sg[:, 1] * -ry + sg[:, 2] * rx
+        J[:, 1:] = sg[:, 1:]
+        H = J.T @ J
+        H[np.diag_indices(3)] += 1e-6
+        s = sg[:, 0]
+        step = -np.linalg.solve(H, J.T @ s)
         if not np.all(np.isfinite(step)):
             return None
         T = _about(step[0], c, step[1:]) @ T

@@ -24,31 +24,58 @@ class SegmentPoints:
         if len(labels) != len(pts):
             raise StageError(f"street segments label {len(labels)} points but {scene.files.street_cloud} "
                              f"holds {len(pts)}")
-        self.levelled = street.level(pts)
-        self.normals = None
-        if street.normals is not None:
-            self.normals = np.asarray(street.normals, np.float64) @ street.up_rotation.T
+        # levelled lazily, per segment: only the façade and ground points are ever used
+        self._points, self._normals = pts, street.normals
+        self._rotation_t = np.ascontiguousarray(street.up_rotation.T)
         carrier = np.asarray(street.carrier)
         self._facade = _groups(np.where(labels >= 0, labels, -1), len(street))
         self._ground = _groups(np.where(labels == -1, carrier, -1), len(street))
         self.street = street
+        self._ground_cache: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}
+        self._facade_cache: dict[int, np.ndarray] = {}
+        self._footprint_cache: dict[tuple[int, float, int], np.ndarray] = {}
+
+    def facade_counts(self) -> np.ndarray:
+        """(S,) number of façade points per segment."""
+        return np.array([len(g) for g in self._facade], np.int64)
 
     def facade(self, i: int) -> np.ndarray:
-        return self.levelled[self._facade[i]]
+        """(F,3) levelled façade points of segment i (cached: do not modify)."""
+        if i not in self._facade_cache:
+            self._facade_cache[i] = level_points(self.street, self._points[self._facade[i]])
+        return self._facade_cache[i]
 
     def ground(self, i: int) -> tuple[np.ndarray, np.ndarray | None]:
-        idx = self._ground[i]
-        return self.levelled[idx], None if self.normals is None else self.normals[idx]
+        """(G,3) levelled ground points of segment i and their normals (cached: do not modify)."""
+        if i not in self._ground_cache:
+            idx = self._ground[i]
+            normals = None
+            if self._normals is not None:
+                normals = np.asarray(self._normals[idx], np.float64) @ self._rotation_t
+            self._ground_cache[i] = (level_points(self.street, self._points[idx]), normals)
+        return self._ground_cache[i]
 
     def footprint(self, i: int, cell_m: float, max_points: int, R_z: np.ndarray | None = None,
                   centre: np.ndarray | None = None) -> np.ndarray:
-        """(B,2) thinned footprint of segment i, after an optional tilt R_z about ``centre``."""
+        """(B,2) thinned footprint of segment i, after an optional tilt R_z about ``centre`` (the
+        untilted one is cached: do not modify it)."""
+        key = (i, cell_m, max_points)
+        if R_z is None and key in self._footprint_cache:
+            return self._footprint_cache[key]
         f = self.facade(i)
         if len(f) == 0:
             return np.asarray(self.street.boundary_xy[i], np.float64).reshape(-1, 2)
         if R_z is not None:
             f = (f - centre) @ R_z.T + centre
-        return thin_xy(f[:, :2], cell_m, max_points)
+            return thin_xy(f[:, :2], cell_m, max_points)
+        self._footprint_cache[key] = thin_xy(f[:, :2], cell_m, max_points)
+        return self._footprint_cache[key]
+
+
+def level_points(street: StreetSegments, points: np.ndarray) -> np.ndarray:
+    """``street.level(points)``: numpy's (N,3) @ (3,3) is ~2.5× faster with a contiguous right
+    operand than with the transposed view ``level`` uses (0.11 s vs 0.26 s on 3.5 M points)."""
+    return (np.asarray(points, np.float64) - street.origin) @ np.ascontiguousarray(street.up_rotation.T)
 
 
 def thin_xy(xy: np.ndarray, cell_m: float, max_points: int) -> np.ndarray:
@@ -59,7 +86,15 @@ def thin_xy(xy: np.ndarray, cell_m: float, max_points: int) -> np.ndarray:
     cell -= cell.min(axis=0)
     # one int64 key per cell, x-major: the same cell order as a row-wise unique, ~10× faster
     key = cell[:, 0] * (int(cell[:, 1].max()) + 1) + cell[:, 1]
-    _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+    n_keys = int(key.max()) + 1
+    if n_keys <= 8 * len(key) + 65536:      # dense key range: counting instead of sorting, same result
+        counts = np.bincount(key, minlength=n_keys)
+        occupied = np.flatnonzero(counts)
+        rank = np.zeros(n_keys, np.int64)
+        rank[occupied] = np.arange(len(occupied))
+        inv, counts = rank[key], counts[occupied]
+    else:
+        _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
     out = np.column_stack([np.bincount(inv, weights=xy[:, 0], minlength=len(counts)),
                            np.bincount(inv, weights=xy[:, 1], minlength=len(counts))])
     out /= counts[:, None]
@@ -69,6 +104,8 @@ def thin_xy(xy: np.ndarray, cell_m: float, max_points: int) -> np.ndarray:
 
 
 def _groups(keys: np.ndarray, n_groups: int) -> list[np.ndarray]:
+    if n_groups < np.iinfo(np.int16).max:
+        keys = keys.astype(np.int16)        # numpy's stable sort of 16-bit keys is a radix sort (~5× faster)
     order = np.argsort(keys, kind="stable")
     bounds = np.searchsorted(keys[order], np.arange(n_groups + 1))
     return [order[bounds[g]:bounds[g + 1]] for g in range(n_groups)]

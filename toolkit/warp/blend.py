@@ -133,17 +133,43 @@ def cell_keys(xy: np.ndarray, anchors: np.ndarray, cell_m: float) -> tuple[np.nd
 
     Returns (rows (N,), table (U,3): anchor, centre x, centre y). Cells are ``cell_m`` squares of the
     levelled xy plane; rows are sorted by anchor, then cell (deterministic).
+
+    Speed: points are grouped by anchor with a radix sort, then each anchor's cells are counted on
+    its own small dense key range (the same rows as a ``np.unique`` of (anchor, cell) keys, whose
+    sort of 3.5 M int64 keys took ~0.4 s).
     """
-    key = np.floor(xy / cell_m).astype(np.int64)
-    key -= key.min(axis=0)
-    ny = int(key[:, 1].max()) + 1
-    flat = (anchors.astype(np.int64) * (int(key[:, 0].max()) + 1) + key[:, 0]) * ny + key[:, 1]
-    uniq, rows = np.unique(flat, return_inverse=True)
-    first = np.zeros(len(uniq), np.int64)
-    first[rows[::-1]] = np.arange(len(rows) - 1, -1, -1)          # a point of each cell
-    table = np.column_stack([anchors[first].astype(np.float64),
-                             (np.floor(xy[first] / cell_m) + 0.5) * cell_m])
-    return rows.ravel(), table
+    cell = np.floor(xy / cell_m).astype(np.int64)
+    anchors = np.asarray(anchors, np.int64)
+    if len(anchors) == 0:
+        return np.zeros(0, np.int64), np.zeros((0, 3))
+    small = anchors.min() >= 0 and anchors.max() < np.iinfo(np.int16).max
+    order = np.argsort(anchors.astype(np.int16) if small else anchors, kind="stable")
+    sorted_anchor = anchors[order]
+    bounds = np.flatnonzero(np.diff(sorted_anchor)) + 1
+    rows = np.empty(len(anchors), np.int64)
+    tables = []
+    n_rows = 0
+    for lo, hi in zip(np.concatenate([[0], bounds]), np.concatenate([bounds, [len(order)]])):
+        idx = order[lo:hi]
+        c = cell[idx]
+        c_min = c.min(axis=0)
+        c -= c_min
+        ny = int(c[:, 1].max()) + 1
+        key = c[:, 0] * ny + c[:, 1]
+        n_keys = int(key.max()) + 1
+        if n_keys <= 8 * len(key) + 65536:
+            occupied = np.flatnonzero(np.bincount(key, minlength=n_keys))
+            rank = np.zeros(n_keys, np.int64)
+            rank[occupied] = np.arange(len(occupied))
+            local = rank[key]
+        else:
+            occupied, local = np.unique(key, return_inverse=True)
+        rows[idx] = n_rows + local.ravel()
+        kx, ky = np.divmod(occupied, ny)
+        tables.append(np.column_stack([np.full(len(occupied), float(sorted_anchor[lo])),
+                                       (kx + c_min[0] + 0.5) * cell_m, (ky + c_min[1] + 0.5) * cell_m]))
+        n_rows += len(occupied)
+    return rows, np.concatenate(tables)
 
 
 def blended_affine(table: np.ndarray, T: np.ndarray, index: SegmentIndex, k: int, d_min: float,
