@@ -61,7 +61,7 @@ def test_full_pipeline_outputs(runs):
 
 
 def test_same_recipe_and_seed_give_identical_outputs(runs):
-    for name in ("registered.ply", "metrics.json", "transforms.json"):
+    for name in ("registered.ply", "metrics.json", "transforms.json", "sparse/images.bin", "sparse/points3D.bin"):
         assert (runs["a"] / name).read_bytes() == (runs["b"] / name).read_bytes(), name
 
 

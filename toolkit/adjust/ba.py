@@ -29,7 +29,7 @@ class BAParams:
     loss_scale_px: float = 1.0
     max_iterations: int = 100
     function_tolerance: float = 1e-6
-    threads: int = -1
+    threads: int = 1
 
 
 @dataclass(frozen=True)
