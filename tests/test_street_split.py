@@ -128,7 +128,7 @@ def _terrace_street(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
 
 def test_stage_splits_a_terrace_of_two_houses():
     points, truth = _terrace_street()
-    seg = RegionGrowing().segment(points, NullObserver())
+    seg = RegionGrowing.from_config({"split_window_m": 2.0}).segment(points, NullObserver())
     fronts = []
     for house in (0, 1):
         lab = seg.point_labels[truth == house]
@@ -137,6 +137,6 @@ def test_stage_splits_a_terrace_of_two_houses():
         members = truth[seg.point_labels == best]
         assert (members == house).mean() >= 0.95  # a pure segment for each house
     assert fronts[0] != fronts[1]
-    whole = RegionGrowing.from_config({"split_window_m": 0}).segment(points, NullObserver())
+    whole = RegionGrowing().segment(points, NullObserver())  # the split is off by default
     lab = whole.point_labels
     assert np.bincount(lab[(truth == 0) & (lab >= 0)]).argmax() == np.bincount(lab[(truth == 1) & (lab >= 0)]).argmax()
