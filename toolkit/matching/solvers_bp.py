@@ -20,7 +20,7 @@ import numpy as np
 
 from toolkit.matching.mrf import MRF, conditional_scores, ranges, segment_argmin
 from toolkit.matching.solvers_common import BestTracker, IterCallback, SolveResult
-from toolkit.matching.solvers_local import icm
+from toolkit.matching.solvers_local import icm_polish
 
 
 @dataclass
@@ -166,16 +166,13 @@ def loopy_bp(mrf: MRF, max_iters: int = 100, damping: float = 0.0, patience: int
         # ICM from the best belief-argmin labelling and from the final messages decoded sequentially
         # (each node conditioned on the labels already chosen for its earlier neighbours, messages
         # standing for the later ones): two roundings of the same fixed point, keep the lower
-        starts = [labels]
+        starts: tuple[np.ndarray, ...] = ()
         if n_slots:
             np.take(mp, stored_at, out=tmp, mode="clip")  # mp holds the last update (swapped above)
             decoded = sequential_decode(mrf, tmp)
             if not np.array_equal(decoded, labels):
-                starts.append(decoded)
-        for start in starts:
-            polished = icm(mrf, init=start)
-            if polished.energy < energy:
-                labels, energy = polished.labels, polished.energy
+                starts = (decoded,)
+        labels, energy = icm_polish(mrf, labels, energy, starts)
     return SolveResult(labels=labels, energy=energy, energy_trace=tracker.trace,
                        iterations=it, converged=converged)
 

@@ -49,3 +49,14 @@ def icm(mrf: MRF, max_iters: int = 50, init: np.ndarray | None = None,
             break
     return SolveResult(labels=tracker.best_labels, energy=tracker.best_energy, energy_trace=tracker.trace,
                        iterations=it, converged=converged)
+
+
+def icm_polish(mrf: MRF, labels: np.ndarray, energy: float,
+               starts: tuple[np.ndarray, ...] = ()) -> tuple[np.ndarray, float]:
+    """ICM from ``labels`` and from each of ``starts``; the lowest-energy result if it beats
+    ``energy`` (a solver's final labelling), else ``labels`` unchanged: never raises the energy."""
+    for start in (labels, *starts):
+        polished = icm(mrf, init=start)
+        if polished.energy < energy:
+            labels, energy = polished.labels, polished.energy
+    return labels, energy

@@ -21,7 +21,7 @@ import numpy as np
 from toolkit.matching.mrf import MRF, conditional_scores, ranges
 from toolkit.matching.solvers_bp import MessagePlan, beliefs, build_plan, send
 from toolkit.matching.solvers_common import BestTracker, IterCallback, SolveResult
-from toolkit.matching.solvers_local import icm
+from toolkit.matching.solvers_local import icm_polish
 
 
 class ChainBound:
@@ -138,9 +138,7 @@ def trws(mrf: MRF, max_iters: int = 100, patience: int = 3, energy_tol: float = 
             break
     labels, energy = tracker.best_labels, tracker.best_energy
     if polish:
-        polished = icm(mrf, init=labels)
-        if polished.energy < energy:
-            labels, energy = polished.labels, polished.energy
+        labels, energy = icm_polish(mrf, labels, energy)
     return SolveResult(labels=labels, energy=energy, energy_trace=tracker.trace,
                        bound_trace=bounds, iterations=it, converged=converged,
                        lower_bound=max(bounds) if bounds else None)

@@ -42,7 +42,7 @@ class SegmentPoints:
     def facade(self, i: int) -> np.ndarray:
         """(F,3) levelled façade points of segment i (cached: do not modify)."""
         if i not in self._facade_cache:
-            self._facade_cache[i] = level_points(self.street, self._points[self._facade[i]])
+            self._facade_cache[i] = self.street.level(self._points[self._facade[i]])
         return self._facade_cache[i]
 
     def ground(self, i: int) -> tuple[np.ndarray, np.ndarray | None]:
@@ -52,7 +52,7 @@ class SegmentPoints:
             normals = None
             if self._normals is not None:
                 normals = np.asarray(self._normals[idx], np.float64) @ self._rotation_t
-            self._ground_cache[i] = (level_points(self.street, self._points[idx]), normals)
+            self._ground_cache[i] = (self.street.level(self._points[idx]), normals)
         return self._ground_cache[i]
 
     def footprint(self, i: int, cell_m: float, max_points: int, R_z: np.ndarray | None = None,
@@ -70,11 +70,6 @@ class SegmentPoints:
             return thin_xy(f[:, :2], cell_m, max_points)
         self._footprint_cache[key] = thin_xy(f[:, :2], cell_m, max_points)
         return self._footprint_cache[key]
-
-
-def level_points(street: StreetSegments, points: np.ndarray) -> np.ndarray:
-    """``street.level(points)`` (kept as the name the refine and warp modules use)."""
-    return street.level(points)
 
 
 def thin_xy(xy: np.ndarray, cell_m: float, max_points: int) -> np.ndarray:

@@ -18,7 +18,6 @@ import numpy as np
 
 from toolkit.refine.blas import single_threaded_blas
 from toolkit.refine.route import sparse_segments
-from toolkit.refine.segments import level_points
 from toolkit.types import Registration, Scene, SegmentTransforms, SparseModel, StreetSegments
 from toolkit.warp.blend import SegmentIndex, blend_points, blend_rigid
 from toolkit.warp.passes import point_route_positions, reanchor_other_pass, sparse_route_positions
@@ -85,7 +84,7 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Sc
     index = SegmentIndex.build(street, transforms, max(k, 1), agree_tol_m=agree_tol_m, agree_ratio=agree_ratio,
                                max_gap_m=max_gap_m)
     pts = load_points(scene, "street_cloud", "warp")
-    xy = level_points(street, pts)[:, :2]
+    xy = street.level(pts)[:, :2]
     carrier = np.asarray(street.carrier, np.int64)
     anchors = index.anchors(xy, carrier, valid)
     model = load_sparse(scene, "warp") if scene.has("sparse") else None
@@ -111,7 +110,7 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Sc
     if model is not None and len(model.image_names):
         names = model.image_names
         C = model.centres
-        cxy = level_points(street, C)[:, :2]
+        cxy = street.level(C)[:, :2]
         cam_anchor = camera_anchors(model, pts, carrier, valid, seg_of_point=seg_of_point)
         unseen = cam_anchor < 0
         if unseen.any():
