@@ -24,6 +24,23 @@ def scene(preset: str, seed: int = 0, **overrides) -> Path:
     return root
 
 
+DEN_HAAG = REPO.parent / "shared" / "data" / "raw" / "denhaag-lod2" / "DenHaag_01.city.json"
+
+
+def city_scene(city: Path = DEN_HAAG, seed: int = 0) -> Path:
+    """data/bench-<city>-<seed> built once from a real city model (``crossview synth --city``)."""
+    root = REPO / "data" / f"bench-{city.name.split('.')[0]}-{seed}"
+    if not (root / "scene.yaml").is_file():
+        if not city.is_file():
+            sys.exit(f"{city}: city model not found (it lives in ../shared/data/raw); pass a scene folder instead")
+        from toolkit.synth.generate import generate_from_city
+
+        t0 = time.perf_counter()
+        generate_from_city(city, seed, root)
+        print(f"(generated {root.name} in {time.perf_counter() - t0:.1f} s)", flush=True)
+    return root
+
+
 def peak_rss_mb(children: bool = False) -> float:
     who = resource.RUSAGE_CHILDREN if children else resource.RUSAGE_SELF
     return resource.getrusage(who).ru_maxrss / 1024.0

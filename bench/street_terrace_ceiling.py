@@ -32,7 +32,7 @@ The truth-side measures are approximate (0.5 m cells, 3 m windows; the turn betw
 not always visible in the cloud). ``--dump`` writes the contact table.
 
 usage: python bench/street_terrace_ceiling.py [SCENE ...] [--window-m 3] [--top-m 0.3] ...
-       (default scene: /tmp/st/denhaag)
+       (default scene: data/bench-DenHaag_01-0, built from ../shared's Den Haag LoD2 model when absent)
 """
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ CELL_M = 0.5
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("scenes", nargs="*", default=["/tmp/st/denhaag"])
+    ap.add_argument("scenes", nargs="*")
     ap.add_argument("--window-m", type=float, default=3.0)
     ap.add_argument("--contact-m", type=float, default=0.75)
     ap.add_argument("--parallel-deg", type=float, default=20.0)
@@ -71,6 +71,11 @@ def main() -> None:
     ap.add_argument("--no-oracle", dest="oracle", action="store_false",
                     help="skip running the stage (the oracle cut of its segments)")
     args = ap.parse_args()
+    if not args.scenes:
+        sys.path.insert(0, str(REPO / "bench"))
+        from _common import city_scene
+
+        args.scenes = [str(city_scene())]
     for path in args.scenes:
         ceiling(Path(path), args)
 

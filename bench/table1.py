@@ -60,7 +60,8 @@ def fmt_iters(m, max_iters: int) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("scene", nargs="?", default="/work/main/data/campus")
+    ap.add_argument("scene", nargs="?", default=str(ROOT / "data" / "campus"),
+                    help="scene folder (default data/campus, as `crossview synth --preset campus --out data/campus` makes)")
     ap.add_argument("--recipe", default=str(ROOT / "recipes" / "dsm.yaml"))
     ap.add_argument("--cache-dir", default="/tmp/cv_match", help="cache of the front stages (see matching_seeds.py)")
     ap.add_argument("--max-iters", type=int, default=100)
