@@ -78,6 +78,24 @@ def find_scenes(pattern: str) -> list[Path]:
     return paths
 
 
+def worker_config() -> dict[str, Any]:
+    """Dask settings for LocalCluster workers that keep a scene as fast as in ``crossview run``.
+
+    Dask's default worker environment sets ``MALLOC_TRIM_THRESHOLD_``; any fixed trim threshold
+    turns off glibc's adaptive mmap threshold, so every large numpy temporary is mmapped, faulted
+    in and unmapped again. Two campus scenes side by side spent ~11 s each in the kernel instead of
+    ~4 s (stage times 1.4-1.8x those of ``run``). A task also runs in a worker thread, where glibc
+    would give it its own arena with the same churn: one arena (``MALLOC_ARENA_MAX=1``). The
+    profiler samples the task thread every 10 ms under the GIL; a scene is one call, so it is off.
+    """
+    import dask
+
+    environ = {k: v for k, v in dask.config.get("distributed.nanny.pre-spawn-environ", {}).items()
+               if k != "MALLOC_TRIM_THRESHOLD_"}
+    environ["MALLOC_ARENA_MAX"] = 1
+    return {"distributed.nanny.pre-spawn-environ": environ, "distributed.worker.profile.enabled": False}
+
+
 def run_batch(recipe_path: Path, scenes: list[Path], out_root: Path, workers: int = 2,
               scheduler: str | None = None, overrides: list[str] | None = None, overwrite: bool = False,
               progress: bool = True) -> list[dict[str, Any]]:
@@ -96,11 +114,7 @@ def run_batch(recipe_path: Path, scenes: list[Path], out_root: Path, workers: in
     else:
         import dask
 
-        # Dask runs each task in a worker thread, where glibc gives numpy's many temporaries their
-        # own malloc arena that it keeps unmapping and faulting back in: measured on one campus scene,
-        # refine 9.3 s and unary 7.9 s in a worker vs 5.5 s and 5.2 s with one arena, as in `run`.
-        environ = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), "MALLOC_ARENA_MAX": 1}
-        with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
+        with dask.config.set(worker_config()):
             cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                    dashboard_address=None, silence_logs=40)
         client = Client(cluster)
