@@ -83,7 +83,9 @@ def main() -> None:
     stamp = (scene.root / "scene.yaml").read_bytes() + str(
         [(f.stat().st_size, f.stat().st_mtime_ns) for f in (scene.files.street_cloud, scene.files.footprints)
          if f]).encode()
-    tag = f"{scene.root.name}-{hashlib.sha1(stamp).hexdigest()[:10]}"
+    from refine_warp_ba import code_stamp  # stages changed since the cache was written: recompute
+
+    tag = f"{scene.root.name}-{hashlib.sha1(stamp + code_stamp().encode()).hexdigest()[:10]}"
     overview, t_ov = _cached(cache / f"{tag}-{args.overview}.pkl",
                              lambda: _stage(reg, args.overview, {})(scene, obs), not args.no_cache)
     street, t_st = _cached(cache / f"{tag}-street.region_growing.pkl",

@@ -71,11 +71,13 @@ def front(recipe_path: Path, scene_dir: Path, cache_dir: Path, use_gps: bool, ov
     stages = {spec.name: (spec, st) for spec, st in plan.stages}
     scene = plan.scene
     obs = NullObserver()
-    street = _load_or_run(cache_dir / f"{scene_dir.name}-street.pkl", cache_path(plan, scene_dir, "street"),
+    # local copies carry cache_path's key (scene, every stage's source, the step specs): a street step
+    # cached under another configuration (e.g. the terrace split on) is never reused
+    street_key, ov_key = cache_path(plan, scene_dir, "street"), cache_path(plan, scene_dir, "overview")
+    street = _load_or_run(cache_dir / street_key.name, street_key,
                           lambda: stages["street"][1](scene=scene, obs=obs), f"{scene_dir.name} street")
     ov_spec = stages["overview"][0]
-    overview = _load_or_run(cache_dir / f"{scene_dir.name}-{ov_spec.use}.pkl",
-                            cache_path(plan, scene_dir, "overview"),
+    overview = _load_or_run(cache_dir / ov_key.name, ov_key,
                             lambda: stages["overview"][1](scene=scene, obs=obs), f"{scene_dir.name} {ov_spec.use}")
     src = b"".join((REPO / f).read_bytes() for f in MATCHING_SOURCES)
     spec_txt = "|".join(f"{stages[k][0].use}{sorted(stages[k][0].params.items())}" for k in ("graph", "unary"))
