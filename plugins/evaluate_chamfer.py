@@ -211,7 +211,12 @@ def _segments_table(street, matches, transforms, overview, per_point, seg_scores
     err_mean = err_med = None
     if per_point is not None and S:
         sel = labels >= 0
-        order = np.argsort(labels[sel], kind="stable")
+        keys = labels[sel]
+        if len(keys) and keys.max() < 2 ** 15:
+            # A stable sort is unique: int16 keys give the same order by numpy's radix sort, ~2x faster
+            # than the comparison sort of wider keys.
+            keys = keys.astype(np.int16)
+        order = np.argsort(keys, kind="stable")
         errs = per_point[sel][order]
         splits = np.cumsum(n_points)[:-1]
         groups = np.split(errs, splits)

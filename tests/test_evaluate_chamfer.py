@@ -74,6 +74,27 @@ def test_matches_brute_force_and_survives_utm_offsets():
     assert np.allclose(r_utm.distances, r.distances, atol=1e-8)
 
 
+def test_matches_plain_two_tree_version_on_larger_clouds():
+    """Leaf-order queries and the mark array instead of np.unique leave pairs and distances unchanged."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(5)
+    a = rng.uniform(0, 60, (20_000, 3)) + UTM
+    b = np.concatenate([rng.uniform(0, 60, (15_000, 3)), rng.uniform(100, 120, (500, 3))]) + UTM
+    for dims in (3, 2):
+        a_, b_ = a[:, :dims], b[:, :dims]
+        origin = b_.mean(axis=0)
+        d, j = cKDTree(b_ - origin).query(a_ - origin, distance_upper_bound=2.0)
+        i_idx = np.flatnonzero(np.isfinite(d))
+        uniq, inverse = np.unique(j[i_idx], return_inverse=True)
+        back = cKDTree(a_ - origin).query(b_[uniq] - origin)[1]
+        mutual = back[inverse] == i_idx
+        r = M.mutual_nn_chamfer(a_, b_, cutoff_m=2.0)
+        assert np.array_equal(r.pairs, np.column_stack([i_idx[mutual], j[i_idx][mutual]]))
+        assert np.array_equal(r.distances, d[i_idx][mutual])
+        assert r.n_pairs > 1000
+
+
 def test_histogram_counts_all_pairs():
     a = np.array([[0.0, 0, 0], [10.0, 0, 0], [20.0, 0, 0]])
     b = a + [0.1, 0, 0]
@@ -108,6 +129,28 @@ def test_error_stats_and_within_fractions():
     assert s["within_m"]["1"]["3d"] == pytest.approx(0.6)
     assert s["within_m"]["1"]["horizontal"] == pytest.approx(0.8)
     assert s["within_m"]["2"]["3d"] == pytest.approx(0.8)
+
+
+def test_error_stats_leaves_input_alone_and_matches_numpy():
+    rng = np.random.default_rng(2)
+    err = rng.gamma(2.0, 1.0, 10_001)
+    err[[3, 50]] = [np.nan, np.inf]
+    before = err.copy()
+    s = M.error_stats(err)
+    assert np.array_equal(err, before, equal_nan=True)
+    finite = before[np.isfinite(before)]
+    p50, p90, p95 = np.percentile(finite, [50, 90, 95])
+    assert (s["mean_m"], s["median_m"], s["p90_m"], s["p95_m"], s["max_m"], s["n"]) == (
+        round(finite.mean(), 6), round(p50, 6), round(p90, 6), round(p95, 6), round(finite.max(), 6), 9_999)
+
+
+def test_point_errors_chunks_do_not_change_values():
+    rng = np.random.default_rng(4)
+    est, true = rng.normal(size=(1000, 3)) * 1e5, rng.normal(size=(1000, 3)) * 1e5
+    e3, eh = M.point_errors(est, true, chunk=7)
+    diff = est - true
+    assert np.array_equal(e3, np.sqrt(diff[:, 0] ** 2 + diff[:, 1] ** 2 + diff[:, 2] ** 2))
+    assert np.array_equal(eh, np.sqrt(diff[:, 0] ** 2 + diff[:, 1] ** 2))
 
 
 def test_rigid_fit_recovers_transform_at_utm_scale():
@@ -243,6 +286,23 @@ def _registration(points, scene: Scene, shift=(0.0, 0.0, 0.0)):
     c = poses.centres + shift
     return Registration(points=points, image_names=poses.names, R=poses.R,
                         t=-np.einsum("cij,cj->ci", poses.R, c), point_segment=np.zeros(len(points), int))
+
+
+@pytest.mark.parametrize("S", [5, 2 ** 15 + 3])
+def test_segment_error_columns_per_segment(S):
+    """Per-segment mean/median errors are those of each segment's points (int16 fast path and not)."""
+    from plugins.evaluate_chamfer import _segments_table
+
+    rng = np.random.default_rng(S)
+    labels = rng.integers(-2, S, 4 * S).astype(np.int32)
+    labels[:S] = np.arange(S)  # every segment has points
+    err = rng.gamma(2.0, 1.0, len(labels))
+    rows = _segments_table(_street(len(labels), labels, S), None, None, None, err, None)
+    for s in (0, 1, S // 2, S - 1):
+        mine = err[labels == s]
+        assert rows[s]["n_points"] == len(mine)
+        assert rows[s]["error_mean_m"] == round(float(mine.mean()), 6)
+        assert rows[s]["error_median_m"] == round(float(np.median(mine)), 6)
 
 
 def test_stage_on_hand_made_scene(scene):

@@ -61,6 +61,50 @@ def test_colmap_roundtrip_exact(tmp_path: Path, binary: bool):
         assert f.read_bytes() == (tmp_path / "m2" / f.name).read_bytes()
 
 
+def _reference_txt(model: SparseModel, path: Path) -> None:
+    """The text writer as it was: one f-string (repr per float) per observation and per point."""
+    from toolkit.io.colmap import _qvecs, _Tracks
+
+    tr = _Tracks(model)
+    path.mkdir(parents=True)
+    qs = _qvecs(model)
+    uv = [f"{u!r} {v!r} {p}" for (u, v), p in zip(tr.uv.tolist(), tr.pid.tolist())]
+    with open(path / "images.txt", "w") as fh:
+        fh.write("# IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n# POINTS2D[] as (X, Y, POINT3D_ID)\n")
+        for k, name in enumerate(model.image_names):
+            vals = [*map(float, qs[k]), *map(float, model.t[k])]
+            fh.write(" ".join([str(int(model.image_ids[k])), *map(repr, vals), str(int(model.camera_ids[k])), name]) + "\n")
+            fh.write(" ".join(uv[tr.img_start[k]:tr.img_start[k + 1]]) + "\n")
+    pairs = [f"{a} {j}" for a, j in tr.track.tolist()]
+    xyz, rgb = np.asarray(model.points3d, np.float64).tolist(), np.asarray(model.points3d_rgb).tolist()
+    starts = tr.pt_start.tolist()
+    with open(path / "points3D.txt", "w") as fh:
+        fh.write("# POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n")
+        fh.writelines(
+            f"{pid} {x!r} {y!r} {z!r} {r} {g} {b} 0.0 {' '.join(pairs[starts[i]:starts[i + 1]])}\n"
+            for i, (pid, (x, y, z), (r, g, b)) in enumerate(zip(np.asarray(model.points3d_ids).tolist(), xyz, rgb)))
+
+
+def test_text_writer_matches_per_value_repr(tmp_path: Path):
+    """The column-wise text writer gives the very bytes of per-value repr formatting, edge cases included."""
+    from dataclasses import replace
+
+    m = _random_model(3, n_img=5, n_pts=40)
+    obs = m.observations.copy()
+    special = [0.0, -0.0, 1.0, 1e-5, 1e16, 123456789.125, 5e-324, -2.5e-7, 0.1 + 0.2, 1e22]
+    obs[:len(special), 2] = special
+    obs[:len(special), 3] = special[::-1]
+    obs = obs[obs[:, 0] != 2]  # an image without observations
+    pts = m.points3d.copy()
+    pts[:len(special), 0] = special
+    m = replace(m, observations=obs, points3d=pts)  # some points now have no track
+    write_model(m, tmp_path / "new", binary=False)
+    _reference_txt(m, tmp_path / "ref")
+    for name in ("images.txt", "points3D.txt"):
+        assert (tmp_path / "new" / name).read_bytes() == (tmp_path / "ref" / name).read_bytes(), name
+    _assert_same(m, read_model(tmp_path / "new"))
+
+
 def test_text_and_binary_agree(tmp_path: Path):
     m = _random_model(1)
     write_model(m, tmp_path / "t", binary=False)

@@ -159,3 +159,34 @@ def test_report_renders_in_chromium(run):
     assert blue > 0.005
     keep = Path("/tmp/crossview_report_screenshot.png")
     shutil.copy(shot, keep)
+
+
+def test_scatter_by_colour_draws_each_point_once_in_its_colour():
+    from matplotlib.colors import to_rgba
+    from matplotlib.figure import Figure
+
+    from toolkit.report_figures import SEGMENT_COLOURS, scatter_by_colour, segment_colours
+
+    rng = np.random.default_rng(0)
+    xy = rng.normal(size=(500, 2))
+    labels = rng.integers(0, 40, 500)
+    ax = Figure().subplots()
+    scatter_by_colour(ax, xy, labels % len(SEGMENT_COLOURS), SEGMENT_COLOURS, 2.0, 3)
+    drawn = [(c.get_offsets().data, c.get_facecolor()) for c in ax.collections]
+    assert len(drawn) == len(np.unique(labels % len(SEGMENT_COLOURS)))  # one scatter per colour
+    got = np.concatenate([np.column_stack([off, np.repeat(fc, len(off), 0)]) for off, fc in drawn])
+    want = np.column_stack([xy, [to_rgba(c) for c in segment_colours(labels)]])
+    order = lambda m: m[np.lexsort(m.T[::-1])]  # noqa: E731
+    np.testing.assert_array_equal(order(got), order(want))
+    assert all(c.get_zorder() == 3 for c in ax.collections)
+    scatter_by_colour(ax, xy[:0], labels[:0], SEGMENT_COLOURS, 2.0, 3)  # nothing to draw
+    assert len(ax.collections) == len(drawn)
+
+
+def test_frame_origin_is_the_rounded_median(run):
+    from toolkit.report import _frame
+
+    _, ctx = run
+    f = _frame(ctx)
+    x0, y0 = np.floor(np.median(ctx.registration.points[:, :2], axis=0) / 100.0) * 100.0
+    assert (f.x0, f.y0) == (x0, y0)

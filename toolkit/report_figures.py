@@ -52,13 +52,26 @@ def segment_colours(labels: np.ndarray) -> np.ndarray:
     return out
 
 
+def scatter_by_colour(ax, xy: np.ndarray, colour_index: np.ndarray, palette: np.ndarray, s: float,
+                      zorder: int) -> None:
+    """``palette[colour_index]``-coloured dots as one scatter per colour, in palette order.
+
+    A single-colour scatter is drawn by blitting one rendered marker (Agg ``draw_markers``); a
+    many-coloured one rasterises every dot on its own, several times slower.
+    """
+    order = np.argsort(colour_index, kind="stable")
+    present, starts = np.unique(colour_index[order], return_index=True)
+    for k, rows in zip(present, np.split(order, starts[1:])):
+        ax.scatter(xy[rows, 0], xy[rows, 1], s=s, c=palette[k:k + 1], linewidths=0, zorder=zorder)
+
+
 def scatter_segments(ax, xy: np.ndarray, labels: np.ndarray, zorder: int = 2) -> None:
     """Ground/clutter as small light dots, façade segments larger and coloured on top."""
     seg = labels >= 0
     size = marker_size(len(xy))
     ax.scatter(xy[~seg, 0], xy[~seg, 1], s=size, c=[GREY], linewidths=0, zorder=zorder)
-    ax.scatter(xy[seg, 0], xy[seg, 1], s=min(3 * size, 8.0), c=segment_colours(labels[seg]), linewidths=0,
-               zorder=zorder + 1)
+    scatter_by_colour(ax, xy[seg], labels[seg] % len(SEGMENT_COLOURS), SEGMENT_COLOURS, min(3 * size, 8.0),
+                      zorder + 1)
 
 
 def _overview_image(ax, overview, frame: Frame, alpha: float = 1.0) -> None:
@@ -125,13 +138,14 @@ def matches_view(street, overview, matches, registration, segment_rows: list[dic
     fig = Figure(figsize=(7.5, 6.6), dpi=100)
     ax = fig.subplots()
     _overview_image(ax, overview, frame)
-    labels = street.point_labels
     S = len(street)
-    sel = labels >= 0
-    xy_all = frame.xy(registration.points)
-    cx = np.bincount(labels[sel], weights=xy_all[sel, 0], minlength=S)[:S]
-    cy = np.bincount(labels[sel], weights=xy_all[sel, 1], minlength=S)[:S]
-    cnt = np.maximum(np.bincount(labels[sel], minlength=S)[:S], 1)
+    # Only façade points count: gather them once (not every point's local xy, most are ground).
+    seg_rows = np.flatnonzero(street.point_labels >= 0)
+    seg_labels = street.point_labels[seg_rows]
+    xy_seg = frame.xy(registration.points[seg_rows, :2])
+    cx = np.bincount(seg_labels, weights=xy_seg[:, 0], minlength=S)[:S]
+    cy = np.bincount(seg_labels, weights=xy_seg[:, 1], minlength=S)[:S]
+    cnt = np.maximum(np.bincount(seg_labels, minlength=S)[:S], 1)
     centres = np.column_stack([cx / cnt, cy / cnt])
     ov_c = overview.centroids - [frame.x0, frame.y0]
     status = []
@@ -142,9 +156,10 @@ def matches_view(street, overview, matches, registration, segment_rows: list[dic
         status.append(colour)
         if m >= 0:
             ax.plot([centres[s, 0], ov_c[m, 0]], [centres[s, 1], ov_c[m, 1]], color=colour, lw=1.6, zorder=3)
-    idx = np.nonzero(sel)[0][plot_indices(int(sel.sum()))]
-    ax.scatter(xy_all[idx, 0], xy_all[idx, 1], s=marker_size(len(idx)), c=to_rgba_array(status)[labels[idx]],
-               linewidths=0, zorder=2)
+    idx = plot_indices(len(seg_rows))
+    kinds = ["#999999", UNKNOWN, OK, BAD]  # the colours of `status`, one scatter each
+    seg_kind = np.array([kinds.index(c) for c in status], np.int64)
+    scatter_by_colour(ax, xy_seg[idx], seg_kind[seg_labels[idx]], to_rgba_array(kinds), marker_size(len(idx)), 2)
     ax.scatter(ov_c[:, 0], ov_c[:, 1], s=10, c="k", marker="+", zorder=4, label="over-view centroid")
     from matplotlib.lines import Line2D
 
@@ -154,7 +169,7 @@ def matches_view(street, overview, matches, registration, segment_rows: list[dic
                Line2D([], [], color="#999999", marker="o", lw=0, label="unmatched")]
     used = set(status)
     ax.legend(handles=[h for h in handles if h.get_color() in used], loc="upper right", fontsize=8)
-    _limits(ax, xy_all[idx] if len(idx) else xy_all)
+    _limits(ax, xy_seg[idx] if len(idx) else frame.xy(registration.points))
     ax.set_title(f"matches: {int((matches.segment_match >= 0).sum())} of {S} street segments matched")
     fig.tight_layout()
     return fig

@@ -81,17 +81,26 @@ def mutual_nn_chamfer(a: np.ndarray, b: np.ndarray, cutoff_m: float) -> ChamferR
     a0, b0 = a - origin, b - origin
     # An upper bound on the query changes nothing: a pair beyond the cutoff is dropped anyway, and
     # b_j's nearest neighbour in a is never farther than a_i, which is within the cutoff.
-    # Unbalanced trees build ~1.3x faster and query as fast; queries use both cores.
-    tree_args = dict(balanced_tree=False, compact_nodes=False)
-    d_ab, j = cKDTree(b0, **tree_args).query(a0, k=1, distance_upper_bound=cutoff_m, workers=-1)
+    # Unbalanced trees with 32-point leaves build ~1.3x faster and query ~10% faster; queries use both cores.
+    tree_args = dict(leafsize=32, balanced_tree=False, compact_nodes=False)
+    tree_a = cKDTree(a0, **tree_args)
+    # Each query's answer is independent of the others: asking in tree_a's leaf order (neighbours
+    # together) only makes the walks through tree_b cache-friendly (~10% less time).
+    order = tree_a.indices
+    d_sorted, j_sorted = cKDTree(b0, **tree_args).query(a0[order], k=1, distance_upper_bound=cutoff_m, workers=-1)
+    d_ab, j = np.empty(len(a)), np.empty(len(a), np.int64)
+    d_ab[order], j[order] = d_sorted, j_sorted
     has = np.isfinite(d_ab)
     i_idx = np.nonzero(has)[0]
     j_idx = j[has]
     if len(i_idx) == 0:
         return ChamferResult(np.zeros((0, 2), np.int64), np.zeros(0), len(a), len(b))
-    uniq_j, inverse = np.unique(j_idx, return_inverse=True)
-    _, i_back = cKDTree(a0, **tree_args).query(b0[uniq_j], k=1, workers=-1)
-    mutual = i_back[inverse] == i_idx
+    hit = np.zeros(len(b), bool)
+    hit[j_idx] = True
+    uniq_j = np.flatnonzero(hit)  # np.unique(j_idx) without the sort
+    back = np.empty(len(b), np.int64)
+    back[uniq_j] = tree_a.query(b0[uniq_j], k=1, workers=-1)[1]
+    mutual = back[j_idx] == i_idx
     pairs = np.column_stack([i_idx[mutual], j_idx[mutual]]).astype(np.int64)
     return ChamferResult(pairs, d_ab[has][mutual], len(a), len(b))
 
@@ -102,13 +111,19 @@ def error_stats(errors: np.ndarray) -> dict:
     e = e[np.isfinite(e)]
     if len(e) == 0:
         return {"mean_m": None, "median_m": None, "p90_m": None, "p95_m": None, "max_m": None, "n": 0}
-    p50, p90, p95 = np.percentile(e, [50, 90, 95])
-    return {"mean_m": _f(e.mean()), "median_m": _f(p50), "p90_m": _f(p90), "p95_m": _f(p95),
-            "max_m": _f(e.max()), "n": len(e)}
+    mean, top = e.mean(), e.max()
+    # e is our own copy (boolean indexing), so the percentile may partition it in place; mean first,
+    # as a reordered sum could differ in the last bit.
+    p50, p90, p95 = np.percentile(e, [50, 90, 95], overwrite_input=True)
+    return {"mean_m": _f(mean), "median_m": _f(p50), "p90_m": _f(p90), "p95_m": _f(p95),
+            "max_m": _f(top), "n": len(e)}
 
 
-def point_errors(estimated: np.ndarray, truth: np.ndarray, chunk: int = 1 << 20) -> tuple[np.ndarray, np.ndarray]:
-    """(3D error, horizontal error) per row, metres; ``chunk`` rows at a time (no (N,3) temporaries)."""
+def point_errors(estimated: np.ndarray, truth: np.ndarray, chunk: int = 1 << 16) -> tuple[np.ndarray, np.ndarray]:
+    """(3D error, horizontal error) per row, metres; ``chunk`` rows at a time (no (N,3) temporaries).
+
+    Small chunks keep the temporaries in cache and in reused heap memory (fresh pages cost more here).
+    """
     n = len(estimated)
     e3, eh = np.empty(n), np.empty(n)
     for s in range(0, n, chunk):

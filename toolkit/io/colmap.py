@@ -8,6 +8,7 @@ cross-check our files against pycolmap's reader.
 from __future__ import annotations
 
 import struct
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -232,7 +233,18 @@ def write_model(model: SparseModel, path: str | Path, binary: bool = False) -> N
     (_write_bin if binary else _write_txt)(model, path)
 
 
+def _interleave(n: int, *columns: Iterable[str]) -> list[str]:
+    """Row-major tokens of ``n`` rows given column by column (rows are then slices of the list)."""
+    out = [""] * (n * len(columns))
+    for k, col in enumerate(columns):
+        out[k::len(columns)] = col
+    return out
+
+
 def _write_txt(model: SparseModel, path: Path) -> None:
+    # Floats are written with repr (shortest exact round-trip). Tokens are made column by column from
+    # flat lists: map(repr, …) is the C-level floor, and 2-D .tolist() would create one list per row
+    # (garbage-collector work that cost as much as the formatting).
     tr = _Tracks(model)
     with open(path / "cameras.txt", "w") as fh:
         fh.write("# CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n")
@@ -240,21 +252,26 @@ def _write_txt(model: SparseModel, path: Path) -> None:
             c = model.cameras[cid]
             fh.write(" ".join([str(cid), c.model, str(c.width), str(c.height), *map(repr, map(float, c.params))]) + "\n")
     qs = _qvecs(model)
-    uv = [f"{u!r} {v!r} {p}" for (u, v), p in zip(tr.uv.tolist(), tr.pid.tolist())]
+    uv = _interleave(len(tr.pid), map(repr, tr.uv[:, 0].tolist()), map(repr, tr.uv[:, 1].tolist()),
+                     map(str, tr.pid.tolist()))
+    img_start = (3 * tr.img_start).tolist()
     with open(path / "images.txt", "w") as fh:
         fh.write("# IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n# POINTS2D[] as (X, Y, POINT3D_ID)\n")
         for k, name in enumerate(model.image_names):
             vals = [*map(float, qs[k]), *map(float, model.t[k])]
             fh.write(" ".join([str(int(model.image_ids[k])), *map(repr, vals), str(int(model.camera_ids[k])), name]) + "\n")
-            fh.write(" ".join(uv[tr.img_start[k]:tr.img_start[k + 1]]) + "\n")
-    pairs = [f"{a} {j}" for a, j in tr.track.tolist()]
-    xyz, rgb = np.asarray(model.points3d, np.float64).tolist(), np.asarray(model.points3d_rgb).tolist()
-    starts = tr.pt_start.tolist()
+            fh.write(" ".join(uv[img_start[k]:img_start[k + 1]]) + "\n")
+    xyz, rgb = np.asarray(model.points3d, np.float64).reshape(-1, 3), np.asarray(model.points3d_rgb).reshape(-1, 3)
+    n_pt = len(xyz)
+    head = _interleave(n_pt, map(str, np.asarray(model.points3d_ids).tolist()),
+                       *(map(repr, xyz[:, d].tolist()) for d in range(3)),
+                       *(map(str, rgb[:, d].tolist()) for d in range(3)), ["0.0"] * n_pt)
+    track = list(map(str, tr.track.ravel().tolist()))
+    starts = (2 * tr.pt_start).tolist()
     with open(path / "points3D.txt", "w") as fh:
         fh.write("# POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n")
-        fh.writelines(
-            f"{pid} {x!r} {y!r} {z!r} {r} {g} {b} 0.0 {' '.join(pairs[starts[i]:starts[i + 1]])}\n"
-            for i, (pid, (x, y, z), (r, g, b)) in enumerate(zip(np.asarray(model.points3d_ids).tolist(), xyz, rgb)))
+        fh.writelines(f"{' '.join(head[8 * i:8 * i + 8])} {' '.join(track[starts[i]:starts[i + 1]])}\n"
+                      for i in range(n_pt))
 
 
 _POINT2D = np.dtype([("x", "<f8"), ("y", "<f8"), ("id", "<i8")])
