@@ -32,9 +32,12 @@ class TRWS(Stage):
         polish: bool = Field(True, description="finish with ICM from the best labelling (never raises the energy; "
                                                "the decoded TRW-S labelling can miss single-node improvements "
                                                "when the relaxation is not tight)")
+        segment_moves: bool = Field(True, description="with polish, also re-match one street segment at a time "
+                                                      "(all its incident edges change together; never raises the "
+                                                      "energy)")
 
     def __call__(self, graphs: ConjugateGraphs, costs: DataCosts, obs: Any) -> Matches:
         p = self.params
         return solve_stage(graphs, costs, p, obs, self.key(), lambda mrf, log: trws(
             mrf, max_iters=p.max_iters, patience=p.patience, energy_tol=p.energy_tol, bound_tol=p.bound_tol,
-            polish=p.polish, on_iter=log))
+            polish=p.polish, segment_moves=p.segment_moves, on_iter=log))

@@ -95,6 +95,7 @@ class MRF:
     cost: np.ndarray            # (E,L) with +inf = pruned
     conj_edges: np.ndarray      # (C,2)
     conj_pos: np.ndarray        # (C,2) column of the shared segment in street edge a / b
+    street_edges: np.ndarray    # (E,2) street segments (j, k) of each node
     act_ptr: np.ndarray
     act_label: np.ndarray
     act_cost: np.ndarray
@@ -139,10 +140,14 @@ class MRF:
     def pairwise(self, labels: np.ndarray) -> np.ndarray:
         """(..., C) V of every conjugate edge under global labels (..., E)."""
         a, b = self.conj_edges[:, 0], self.conj_edges[:, 1]
-        la, lb = labels[..., a], labels[..., b]
+        return self.edge_costs(np.arange(len(a)), labels[..., a], labels[..., b])
+
+    def edge_costs(self, edges: np.ndarray, la: np.ndarray, lb: np.ndarray) -> np.ndarray:
+        """(..., n) V of conjugate ``edges`` (n,) given the global labels (..., n) of their two ends."""
+        a, b, pos = self.conj_edges[edges, 0], self.conj_edges[edges, 1], self.conj_pos[edges]
         null = (la == self.null_label) | (lb == self.null_label)
         la_c, lb_c = np.where(null, 0, la), np.where(null, 0, lb)
-        same = self.label_pairs[la_c, self.conj_pos[:, 0]] == self.label_pairs[lb_c, self.conj_pos[:, 1]]
+        same = self.label_pairs[la_c, pos[:, 0]] == self.label_pairs[lb_c, pos[:, 1]]
         dth = np.abs(wrap_angle(self.theta[a, la_c] - self.theta[b, lb_c]))
         dt = np.linalg.norm(self.t[a, la_c] - self.t[b, lb_c], axis=-1)
         with np.errstate(invalid="ignore"):
@@ -199,7 +204,8 @@ def build_mrf(graphs: ConjugateGraphs, costs: DataCosts, c1: float, c2: float,
     mrf_args = {"n_nodes": n_nodes, "n_labels": n_labels, "c1": float(c1), "c2": float(c2),
                 "theta_th_rad": float(np.deg2rad(theta_th_deg)), "t_th_m": float(t_th_m),
                 "label_pairs": label_pairs, "theta": theta, "t": tr, "cost": cost, "conj_edges": conj,
-                "conj_pos": conj_pos, "act_ptr": act_ptr, "act_label": act_label.astype(np.int64),
+                "conj_pos": conj_pos, "street_edges": street_edges, "act_ptr": act_ptr,
+                "act_label": act_label.astype(np.int64),
                 "act_cost": cost[act_node, act_label], "n_act": n_act}
     pair_edge, pair_a, pair_b = _compatible_pairs(mrf_args, act_node)
     return MRF(**mrf_args, pair_edge=pair_edge, pair_a=pair_a, pair_b=pair_b,

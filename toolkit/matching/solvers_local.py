@@ -51,12 +51,103 @@ def icm(mrf: MRF, max_iters: int = 50, init: np.ndarray | None = None,
                        iterations=it, converged=converged)
 
 
-def icm_polish(mrf: MRF, labels: np.ndarray, energy: float,
-               starts: tuple[np.ndarray, ...] = ()) -> tuple[np.ndarray, float]:
+def icm_polish(mrf: MRF, labels: np.ndarray, energy: float, starts: tuple[np.ndarray, ...] = (),
+               segment_moves: bool = False) -> tuple[np.ndarray, float]:
     """ICM from ``labels`` and from each of ``starts``; the lowest-energy result if it beats
-    ``energy`` (a solver's final labelling), else ``labels`` unchanged: never raises the energy."""
+    ``energy`` (a solver's final labelling), else ``labels`` unchanged: never raises the energy.
+    segment_moves: then alternate ``segment_moves`` and ICM until neither lowers the energy."""
     for start in (labels, *starts):
         polished = icm(mrf, init=start)
         if polished.energy < energy:
             labels, energy = polished.labels, polished.energy
+    while segment_moves:
+        moved, e_moved = segment_move_sweeps(mrf, labels, energy)
+        if e_moved >= energy:
+            break
+        polished = icm(mrf, init=moved)
+        labels, energy = (polished.labels, polished.energy) if polished.energy < e_moved else (moved, e_moved)
     return labels, energy
+
+
+def segment_move_sweeps(mrf: MRF, labels: np.ndarray, energy: float, max_sweeps: int = 10,
+                        max_block: int = 1024) -> tuple[np.ndarray, float]:
+    """Re-label the nodes incident to one street segment together, exactly over their best labels.
+
+    A street segment's match is shared by every conjugate node (street edge) incident to it, and
+    those nodes are pairwise neighbours: moving the segment changes several labels at once, and
+    ICM, one node at a time, has to pass through a labelling where they disagree (c2 on every
+    pair), so it never does. For each segment, every combination of its nodes' candidate labels
+    (each node's current label, null, and its best labels given the others, as many as keep the
+    block within ``max_block`` combinations) is scored exactly on the terms it changes, and the
+    best is kept when it lowers the energy. Sweeps over all segments until one changes nothing.
+    Never raises the energy.
+    """
+    x = np.asarray(labels, dtype=np.int64).copy()
+    n_seg = int(mrf.street_edges.max()) + 1 if mrf.n_nodes else 0
+    inc_node = np.concatenate([np.arange(mrf.n_nodes)] * 2)
+    inc_seg = mrf.street_edges.T.ravel()
+    order = np.argsort(inc_seg, kind="stable")
+    seg_ptr = np.searchsorted(inc_seg[order], np.arange(n_seg + 1))
+    node_conj = _node_conj_edges(mrf)
+    for _ in range(max_sweeps):
+        improved = False
+        for s in range(n_seg):
+            nodes = inc_node[order[seg_ptr[s]:seg_ptr[s + 1]]]
+            if len(nodes) < 2:
+                continue
+            grid = _block_candidates(mrf, x, nodes, max_block)
+            if grid is None:
+                continue
+            touched = np.unique(np.concatenate([node_conj[i] for i in nodes]))
+            delta = (_block_energy(mrf, x, nodes, grid, touched)
+                     - _block_energy(mrf, x, nodes, x[nodes][None], touched)[0])
+            best = int(np.argmin(delta))
+            if delta[best] < -1e-9 * max(1.0, abs(energy)):
+                x[nodes] = grid[best]
+                energy += float(delta[best])
+                improved = True
+        if not improved:
+            break
+    return x, float(mrf.energy(mrf.to_global(x)))
+
+
+def _block_candidates(mrf: MRF, x: np.ndarray, nodes: np.ndarray, max_block: int) -> np.ndarray | None:
+    """(B, len(nodes)) local labels: every combination of the nodes' candidate labels (their
+    current label, null, and their best labels given x, about max_block combinations in all)."""
+    k = max(1, int(np.floor(max_block ** (1.0 / len(nodes)))) - 2)
+    options = []
+    for i in nodes:
+        best = np.argsort(conditional_scores(mrf, i, x), kind="stable")[:k]
+        options.append(np.unique(np.concatenate([best, [x[i], mrf.n_act[i] - 1]])))
+    if all(len(o) == 1 for o in options):
+        return None
+    return np.stack(np.meshgrid(*options, indexing="ij"), axis=-1).reshape(-1, len(nodes))
+
+
+def _node_conj_edges(mrf: MRF) -> list[np.ndarray]:
+    """Conjugate edge indices touching each node."""
+    ends = mrf.conj_edges.T.ravel()
+    edge = np.concatenate([np.arange(len(mrf.conj_edges))] * 2)
+    order = np.argsort(ends, kind="stable")
+    ptr = np.searchsorted(ends[order], np.arange(mrf.n_nodes + 1))
+    return [edge[order[ptr[i]:ptr[i + 1]]] for i in range(mrf.n_nodes)]
+
+
+def _block_energy(mrf: MRF, x: np.ndarray, nodes: np.ndarray, grid: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """(B,) Σ D over ``nodes`` + Σ V over conjugate ``edges`` when ``nodes`` take the local labels
+    grid (B, len(nodes)) and every other node keeps x."""
+    g = mrf.to_global(x)
+    block = mrf.act_label[mrf.act_ptr[nodes][None, :] + grid]                # (B, n) global
+    unary = mrf.cost[nodes[None, :], block].sum(axis=1)
+    if len(edges) == 0:
+        return unary
+    col = np.full(mrf.n_nodes, -1)
+    col[nodes] = np.arange(len(nodes))
+    ends = []
+    for side in (0, 1):
+        node = mrf.conj_edges[edges, side]
+        lab = np.broadcast_to(g[node], (len(grid), len(edges))).copy()
+        inside = col[node] >= 0
+        lab[:, inside] = block[:, col[node[inside]]]
+        ends.append(lab)
+    return unary + mrf.edge_costs(edges, *ends).sum(axis=1)
