@@ -93,3 +93,23 @@ def test_points_of_the_other_pass_follow_a_segment_of_their_own_pass(tmp_path, s
     assert np.median(err_on[600:900]) < 1.0 and np.percentile(err_on[600:900], 90) < 3.0
     assert np.abs(on.points[:600] - truth[:600]).max() < 1e-6      # the first pass stays with segment 0
     assert (on.point_segment[600:900] == 1).mean() > 0.8
+
+
+@pytest.mark.parametrize("stage", [Nearest, InverseLog], ids=["nearest", "inverse_log"])
+def test_cameras_of_the_other_pass_follow_a_segment_of_their_own_pass(tmp_path, stage):
+    """A last-pass camera that mostly sees the merged segment 0 (fitted to the first pass) must not
+    take its transform: it is anchored on a segment of its own pass (here 1, 12 m away)."""
+    street, scene, tr, _ = _loop_scene(tmp_path)
+    extra = {"neighbours_k": 1} if stage is InverseLog else {}
+    on = stage.from_config(extra)(tr, street, scene, NullObserver())
+    off = stage.from_config({"pass_gap_m": None, **extra})(tr, street, scene, NullObserver())
+    truth = np.vstack([np.column_stack([np.arange(20.0), np.full(20, 4.0), np.full(20, 1.5)]),
+                       np.column_stack([np.arange(20.0), np.full(20, 16.0), np.full(20, 1.5)])])
+    last = np.r_[0:20, 21:41]  # every camera but the one 1 km away
+
+    def centre_err(reg):
+        return np.linalg.norm(-np.einsum("cji,cj->ci", reg.R, reg.t)[last] - truth, axis=1)
+
+    assert centre_err(off)[20:].max() > 10.0       # without the check some last-pass camera is 12 m off
+    assert centre_err(on)[20:].max() < 1e-6
+    assert centre_err(on)[:20].max() < 1e-6        # the first pass keeps segment 0's transform

@@ -3,7 +3,10 @@
 A camera is anchored on the segment it looks at: the most frequent valid carrier segment of the
 dense street points next to the sparse points it observes. Nearness in the street frame alone is
 not enough: after a loop, drift puts the segments of another pass of the route next to the camera.
-Cameras that see no registered segment fall back to the nearest valid segment.
+Nor are the camera's own observations, where the segmentation merged façades of both passes into
+one segment: with the pass check on, segments farther along the route than ``pass_gap_m`` from the
+camera get no vote. Cameras that see no registered segment fall back to the nearest valid segment
+(of their own pass, with the check on).
 
 Points are anchored on their carrier segment (else the nearest valid one); with a COLMAP model and
 ``pass_gap_m`` set, a point captured on another pass of the route than its anchor segment is
@@ -17,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from toolkit.refine.blas import single_threaded_blas
-from toolkit.refine.route import sparse_segments
+from toolkit.refine.route import camera_route_positions, sparse_segments
 from toolkit.types import Registration, Scene, SegmentTransforms, SparseModel, StreetSegments
 from toolkit.warp.blend import SegmentIndex, blend_points, blend_rigid
 from toolkit.warp.passes import point_route_positions, reanchor_other_pass, sparse_route_positions
@@ -32,8 +35,13 @@ class PassCheck:
 
 
 def camera_anchors(model: SparseModel, dense: np.ndarray, carrier: np.ndarray, valid: np.ndarray,
-                   max_gap_m: float = 1.0, seg_of_point: np.ndarray | None = None) -> np.ndarray:
-    """(C,) segment each camera observes most (−1: none), via the dense points near its sparse points."""
+                   max_gap_m: float = 1.0, seg_of_point: np.ndarray | None = None,
+                   same_pass: tuple[np.ndarray, np.ndarray, float] | None = None) -> np.ndarray:
+    """(C,) segment each camera observes most (−1: none), via the dense points near its sparse points.
+
+    same_pass: (camera route positions (C,), segment route positions (S,), pass_gap_m): a segment
+    farther than pass_gap_m along the route from the camera (another pass) gets no vote from it.
+    """
     C = len(model.image_names)
     out = np.full(C, -1, np.int64)
     if len(model.observations) == 0 or len(model.points3d) == 0:
@@ -43,6 +51,10 @@ def camera_anchors(model: SparseModel, dense: np.ndarray, carrier: np.ndarray, v
     img = model.observations[:, 0].astype(np.int64)
     seg = seg_of_point[model.observations[:, 1].astype(np.int64)]
     keep = seg >= 0
+    if same_pass is not None:
+        cam_s, segment_s, gap = same_pass
+        with np.errstate(invalid="ignore"):
+            keep[keep] = ~(np.abs(cam_s[img[keep]] - segment_s[seg[keep]]) > gap)  # NaN: unknown, kept
     if not keep.any():
         return out
     S = int(max(carrier.max(), seg.max())) + 1
@@ -88,7 +100,7 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Sc
     carrier = np.asarray(street.carrier, np.int64)
     anchors = index.anchors(xy, carrier, valid)
     model = load_sparse(scene, "warp") if scene.has("sparse") else None
-    seg_of_point = None
+    seg_of_point = segment_s = None
     if model is not None and len(model.points3d):
         seg_of_point = sparse_segments(model, pts, carrier, valid)
         if passes.pass_gap_m is not None:
@@ -111,10 +123,16 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Sc
         names = model.image_names
         C = model.centres
         cxy = street.level(C)[:, :2]
-        cam_anchor = camera_anchors(model, pts, carrier, valid, seg_of_point=seg_of_point)
+        cam_s = camera_route_positions(model) if segment_s is not None else None
+        same_pass = (cam_s, segment_s, passes.pass_gap_m) if segment_s is not None else None
+        cam_anchor = camera_anchors(model, pts, carrier, valid, seg_of_point=seg_of_point, same_pass=same_pass)
         unseen = cam_anchor < 0
         if unseen.any():
             cam_anchor[unseen] = index.nearest(cxy[unseen])
+            if same_pass is not None:  # the nearest segment may be on another pass: as for points
+                cam_anchor = reanchor_other_pass(cam_anchor, cxy, np.where(unseen, cam_s, np.nan), segment_s,
+                                                 np.asarray(index.all_tree.data), index.all_seg,
+                                                 passes.pass_gap_m, passes.route_scale)
         pos, Rb = blend_rigid(C, cxy, cam_anchor, T, index, k, d_min)
         R = np.einsum("cab,cdb->cad", model.R, Rb)          # R_wc · R̄ᵀ
         t = -np.einsum("cab,cb->ca", R, pos)
