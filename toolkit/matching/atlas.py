@@ -152,7 +152,12 @@ def build_atlas(label_image: np.ndarray, boundary_px: tuple[np.ndarray, ...], tr
     margin = 2 * reach_px + int(np.ceil(truncate)) + 2
     origin = np.zeros((n, 2), np.int64)
     size = np.zeros((n, 2), np.int64)
+    # Beyond truncate_px + 1 of its boundary's bounding box a crop is one plateau (truncate): the
+    # distances and erosions are computed on that tight box only (values[p] starts at corner[p] of
+    # the crop) and the plateau comes from the plane's fill (≈10× less work, the same bytes).
+    pad = int(np.ceil(truncate)) + 1
     values: list[np.ndarray] = []
+    corner = np.zeros((n, 2), np.int64)
     for p in range(n):  # one iteration per over-view segment
         b = np.asarray(boundary_px[p], dtype=np.int64).reshape(-1, 2)
         lo = b.min(axis=0) if len(b) else np.zeros(2, np.int64)
@@ -161,7 +166,7 @@ def build_atlas(label_image: np.ndarray, boundary_px: tuple[np.ndarray, ...], tr
         size[p] = hi - lo + 1 + 2 * margin
         shape = tuple(size[p])
         if not len(b):
-            values.append(np.full((n_bins,) + shape, truncate))
+            values.append(np.full((n_bins, 0, 0), truncate))
             continue
         rr, cc = b[:, 0] - origin[p, 0], b[:, 1] - origin[p, 1]
         if n_bins > 1:
@@ -170,8 +175,10 @@ def build_atlas(label_image: np.ndarray, boundary_px: tuple[np.ndarray, ...], tr
             values.append(_directional_planes(mask, ang, rr, cc, n_bins,
                                               orientation_weight_px_per_rad, truncate))
         else:
-            m = np.ones(shape, bool)
-            m[rr, cc] = False
+            corner[p] = np.maximum(margin - pad, 0)
+            h, w = np.minimum(size[p] - corner[p], hi - lo + 1 + 2 * pad)
+            m = np.ones((h, w), bool)
+            m[rr - corner[p, 0], cc - corner[p, 1]] = False
             values.append(np.minimum(ndi.distance_transform_edt(m), truncate)[None])
     place, plane_h, stride = _pack(size, min_width=2048)
     plane_size = plane_h * stride
@@ -179,11 +186,12 @@ def build_atlas(label_image: np.ndarray, boundary_px: tuple[np.ndarray, ...], tr
     for e in erosions:
         buf = np.full((n_bins, plane_h, stride), SCALE, np.uint8)
         for p, v in enumerate(values):
-            if e > 0:
+            r0, c0 = place[p] + corner[p]
+            if e > 0 and v.size:
+                v, (r0, c0) = _grow(v, corner[p], size[p], e, truncate), place[p] + np.maximum(corner[p] - e, 0)
                 v = ndi.grey_erosion(v, size=(1, 2 * e + 1, 2 * e + 1), mode="nearest")
             q = np.rint(v * (SCALE / truncate)).astype(np.uint8)
-            (r0, c0), (h, w) = place[p], size[p]
-            buf[:, r0:r0 + h, c0:c0 + w] = q
+            buf[:, r0:r0 + q.shape[1], c0:c0 + q.shape[2]] = q
         levels.append(buf.reshape(-1))
     inside = None
     if with_inside:
@@ -196,6 +204,14 @@ def build_atlas(label_image: np.ndarray, boundary_px: tuple[np.ndarray, ...], tr
         inside = ins.reshape(-1)
     return CropAtlas(tuple(levels), tuple(int(e) for e in erosions), stride, plane_size, n_bins,
                      origin, size, place, int(reach_px), truncate, inside)
+
+
+def _grow(v: np.ndarray, corner: np.ndarray, crop: np.ndarray, e: int, truncate: float) -> np.ndarray:
+    """The (B,h,w) box ``v`` at ``corner`` of its crop, padded with the plateau by ``e`` on each side
+    (within the crop), so that an erosion of radius e sees what it would see on the whole crop."""
+    before = np.minimum(corner, e)
+    after = np.minimum(crop - corner - np.array(v.shape[1:]), e)
+    return np.pad(v, ((0, 0), (before[0], after[0]), (before[1], after[1])), constant_values=truncate)
 
 
 def _segment_mask(label_image: np.ndarray, p: int, origin: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
