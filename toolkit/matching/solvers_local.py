@@ -60,7 +60,7 @@ def icm_polish(mrf: MRF, labels: np.ndarray, energy: float, starts: tuple[np.nda
         polished = icm(mrf, init=start)
         if polished.energy < energy:
             labels, energy = polished.labels, polished.energy
-    while segment_moves:
+    while segment_moves:  # alternate the two until neither lowers the energy
         moved, e_moved = segment_move_sweeps(mrf, labels, energy)
         if e_moved >= energy:
             break
@@ -84,31 +84,36 @@ def segment_move_sweeps(mrf: MRF, labels: np.ndarray, energy: float, max_sweeps:
     """
     x = np.asarray(labels, dtype=np.int64).copy()
     n_seg = int(mrf.street_edges.max()) + 1 if mrf.n_nodes else 0
-    inc_node = np.concatenate([np.arange(mrf.n_nodes)] * 2)
-    inc_seg = mrf.street_edges.T.ravel()
-    order = np.argsort(inc_seg, kind="stable")
-    seg_ptr = np.searchsorted(inc_seg[order], np.arange(n_seg + 1))
-    node_conj = _node_conj_edges(mrf)
+    seg_nodes = _groups(mrf.street_edges.T.ravel(), n_seg, mrf.n_nodes)   # nodes incident to each segment
+    node_conj = _groups(mrf.conj_edges.T.ravel(), mrf.n_nodes, len(mrf.conj_edges))
     for _ in range(max_sweeps):
         improved = False
-        for s in range(n_seg):
-            nodes = inc_node[order[seg_ptr[s]:seg_ptr[s + 1]]]
+        for nodes in seg_nodes:
             if len(nodes) < 2:
                 continue
             grid = _block_candidates(mrf, x, nodes, max_block)
             if grid is None:
                 continue
             touched = np.unique(np.concatenate([node_conj[i] for i in nodes]))
-            delta = (_block_energy(mrf, x, nodes, grid, touched)
-                     - _block_energy(mrf, x, nodes, x[nodes][None], touched)[0])
-            best = int(np.argmin(delta))
-            if delta[best] < -1e-9 * max(1.0, abs(energy)):
+            block_e = _block_energy(mrf, x, nodes, grid, touched)
+            current = np.flatnonzero((grid == x[nodes]).all(axis=1))[0]  # every node's options hold its label
+            best = int(np.argmin(block_e))
+            delta = float(block_e[best] - block_e[current])
+            if delta < -1e-9 * max(1.0, abs(energy)):
                 x[nodes] = grid[best]
-                energy += float(delta[best])
+                energy += delta
                 improved = True
         if not improved:
             break
     return x, float(mrf.energy(mrf.to_global(x)))
+
+
+def _groups(keys: np.ndarray, n_keys: int, modulo: int) -> list[np.ndarray]:
+    """For each key 0..n_keys-1, the positions (mod ``modulo``) where it occurs in ``keys``: with
+    keys = a (2, M) column pair raveled, the rows 0..M-1 that hold it at either end."""
+    order = np.argsort(keys, kind="stable")
+    ptr = np.searchsorted(keys[order], np.arange(n_keys + 1))
+    return [order[ptr[k]:ptr[k + 1]] % modulo for k in range(n_keys)]
 
 
 def _block_candidates(mrf: MRF, x: np.ndarray, nodes: np.ndarray, max_block: int) -> np.ndarray | None:
@@ -122,15 +127,6 @@ def _block_candidates(mrf: MRF, x: np.ndarray, nodes: np.ndarray, max_block: int
     if all(len(o) == 1 for o in options):
         return None
     return np.stack(np.meshgrid(*options, indexing="ij"), axis=-1).reshape(-1, len(nodes))
-
-
-def _node_conj_edges(mrf: MRF) -> list[np.ndarray]:
-    """Conjugate edge indices touching each node."""
-    ends = mrf.conj_edges.T.ravel()
-    edge = np.concatenate([np.arange(len(mrf.conj_edges))] * 2)
-    order = np.argsort(ends, kind="stable")
-    ptr = np.searchsorted(ends[order], np.arange(mrf.n_nodes + 1))
-    return [edge[order[ptr[i]:ptr[i + 1]]] for i in range(mrf.n_nodes)]
 
 
 def _block_energy(mrf: MRF, x: np.ndarray, nodes: np.ndarray, grid: np.ndarray, edges: np.ndarray) -> np.ndarray:

@@ -123,8 +123,10 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Sc
         names = model.image_names
         C = model.centres
         cxy = street.level(C)[:, :2]
-        cam_s = camera_route_positions(model) if segment_s is not None else None
-        same_pass = (cam_s, segment_s, passes.pass_gap_m) if segment_s is not None else None
+        same_pass = None
+        if segment_s is not None:
+            cam_s = camera_route_positions(model)
+            same_pass = (cam_s, segment_s, passes.pass_gap_m)
         cam_anchor = camera_anchors(model, pts, carrier, valid, seg_of_point=seg_of_point, same_pass=same_pass)
         unseen = cam_anchor < 0
         if unseen.any():
