@@ -161,26 +161,102 @@ def test_report_renders_in_chromium(run):
     shutil.copy(shot, keep)
 
 
-def test_scatter_by_colour_draws_each_point_once_in_its_colour():
-    from matplotlib.colors import to_rgba
-    from matplotlib.figure import Figure
+def _pixel_of(panel, x, y):
+    """The plain definition: the pixel whose square holds (x, y), or None outside the panel."""
+    (x0, x1), (y0, y1) = panel.xlim, panel.ylim
+    col = int(np.floor((x - x0) / (x1 - x0) * panel.width))
+    row = int(np.floor((y1 - y) / (y1 - y0) * panel.height))
+    return (row, col) if 0 <= col < panel.width and 0 <= row < panel.height else None
 
-    from toolkit.report_figures import SEGMENT_COLOURS, scatter_by_colour, segment_colours
 
-    rng = np.random.default_rng(0)
-    xy = rng.normal(size=(500, 2))
-    labels = rng.integers(0, 40, 500)
-    ax = Figure().subplots()
-    scatter_by_colour(ax, xy, labels % len(SEGMENT_COLOURS), SEGMENT_COLOURS, 2.0, 3)
-    drawn = [(c.get_offsets().data, c.get_facecolor()) for c in ax.collections]
-    assert len(drawn) == len(np.unique(labels % len(SEGMENT_COLOURS)))  # one scatter per colour
-    got = np.concatenate([np.column_stack([off, np.repeat(fc, len(off), 0)]) for off, fc in drawn])
-    want = np.column_stack([xy, [to_rgba(c) for c in segment_colours(labels)]])
-    order = lambda m: m[np.lexsort(m.T[::-1])]  # noqa: E731
-    np.testing.assert_array_equal(order(got), order(want))
-    assert all(c.get_zorder() == 3 for c in ax.collections)
-    scatter_by_colour(ax, xy[:0], labels[:0], SEGMENT_COLOURS, 2.0, 3)  # nothing to draw
-    assert len(ax.collections) == len(drawn)
+def test_rasterised_points_keep_the_topmost_point_of_each_pixel():
+    from toolkit.point_raster import largest_value, topmost
+    from toolkit.report_canvas import Panel
+
+    rng = np.random.default_rng(1)
+    panel = Panel(40, 25, 17, 11, (-3.0, 5.0), (-2.0, 4.0))
+    xy = rng.uniform([-4.0, -3.0], [6.0, 5.0], (3000, 2))  # some fall outside the panel
+    priority = rng.integers(0, 9, len(xy))
+    values = rng.normal(size=len(xy))
+    want_top = np.full((panel.height, panel.width), -1)
+    want_largest = np.full((panel.height, panel.width), np.nan)
+    for (x, y), p, v in zip(xy, priority, values):
+        pixel = _pixel_of(panel, x, y)
+        if pixel is not None:
+            want_top[pixel] = max(want_top[pixel], p)
+            want_largest[pixel] = v if np.isnan(want_largest[pixel]) else max(want_largest[pixel], v)
+            col, row = panel.to_local_px(x, y)  # the panel's drawing coordinates agree
+            assert (int(np.floor(row)), int(np.floor(col))) == pixel
+    np.testing.assert_array_equal(topmost(panel, xy, priority), want_top)
+    np.testing.assert_array_equal(largest_value(panel, xy, values), want_largest)
+
+
+def test_dilate_max_is_the_block_maximum():
+    from toolkit.point_raster import dilate_max
+
+    image = np.random.default_rng(2).integers(-1, 20, (9, 13))
+    for size in (1, 2, 3):
+        want = np.array([[image[max(r - size + 1, 0):r + 1, max(c - size + 1, 0):c + 1].max()
+                          for c in range(image.shape[1])] for r in range(image.shape[0])])
+        np.testing.assert_array_equal(dilate_max(image, size), want)
+
+
+def test_overview_mask_looks_up_each_pixel_centre(run):
+    from toolkit.point_raster import overview_mask
+    from toolkit.report_canvas import Panel
+
+    _, ctx = run
+    ov = ctx.overview
+    a, _, c, _, e, f = ov.grid.transform
+    panel = Panel(0, 0, 23, 19, (-12.0, 101.0), (-7.0, 95.0))  # wider than the 90 m over-view raster
+    got = overview_mask(panel, ov, E0, N0)
+    (x0, x1), (y0, y1) = panel.xlim, panel.ylim
+    for row in range(panel.height):
+        for col in range(panel.width):
+            x = E0 + x0 + (col + 0.5) * (x1 - x0) / panel.width
+            y = N0 + y1 - (row + 0.5) * (y1 - y0) / panel.height
+            i, j = int(np.floor((y - f) / e)), int(np.floor((x - c) / a))
+            inside = 0 <= i < ov.label_image.shape[0] and 0 <= j < ov.label_image.shape[1]
+            assert got[row, col] == (int(ov.label_image[i, j] >= 0) if inside else -1)
+    assert {-1, 0, 1} <= set(np.unique(got).tolist())
+
+
+def test_nice_ticks_are_round_and_labelled_apart():
+    from toolkit.report_canvas import MINUS, nice_ticks, tick_labels
+
+    rng = np.random.default_rng(3)
+    for lo, span in zip(rng.uniform(-500, 500, 200), 10.0 ** rng.uniform(-2, 3, 200)):
+        ticks = nice_ticks(lo, lo + span, 8)
+        assert 3 <= len(ticks) <= 8
+        assert ticks[0] >= lo - 1e-9 * span and ticks[-1] <= lo + span + 1e-9 * span
+        steps = np.diff(ticks)
+        np.testing.assert_allclose(steps, steps[0], rtol=1e-9)
+        mantissa = steps[0] / 10.0 ** np.floor(np.log10(steps[0]))
+        assert min(abs(mantissa - m) for m in (1, 2, 2.5, 5, 10)) < 1e-6
+        labels = tick_labels(ticks)
+        assert len(set(labels)) == len(labels)
+        np.testing.assert_allclose([float(s.replace(MINUS, "-")) for s in labels], ticks, atol=1e-6 * span)
+    assert tick_labels(nice_ticks(-200.0, 250.0)) == [f"{MINUS}200", f"{MINUS}100", "0", "100", "200"]
+
+
+def test_levelled_xy_is_the_street_levelling(run):
+    from toolkit.report_figures import levelled_xy
+
+    _, ctx = run
+    th = 0.7
+    R = np.array([[np.cos(th), -np.sin(th), 0.1], [np.sin(th), np.cos(th), -0.2], [0.05, 0.1, 1.0]])
+    street = type(ctx.street)(**{**ctx.street.__dict__, "origin": np.array([3.0, -4.0, 1.5]), "up_rotation": R})
+    pts = np.random.default_rng(4).normal(0, 50, (500, 3))
+    np.testing.assert_allclose(levelled_xy(street, pts), street.level(pts)[:, :2], rtol=0, atol=1e-9)
+
+
+def test_error_colours_follow_matplotlib_inferno_r():
+    import matplotlib
+
+    from toolkit.point_raster import inferno_r_lut
+
+    want = np.asarray(matplotlib.colormaps["inferno_r"](np.arange(256))[:, :3]) * 255
+    assert np.abs(inferno_r_lut().astype(float) - want).max() <= 8
 
 
 def test_frame_origin_is_the_rounded_median(run):

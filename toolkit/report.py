@@ -67,6 +67,7 @@ def lookup(values: Any, dotted: str) -> Any:
 
 def write_report(out_dir: Path, context: ReportContext) -> Path:
     from toolkit import report_figures as F
+    from toolkit.report_canvas import encode_png
 
     out_dir = Path(out_dir)
     fig_dir = out_dir / "figures"
@@ -77,14 +78,15 @@ def write_report(out_dir: Path, context: ReportContext) -> Path:
     rows = list(values.get("segments") or []) or _segment_rows(c)
     frame = _frame(c)
     missing: list[str] = []
-    figures: list[tuple[str, str, str]] = []  # (file, title, caption)
+    figures: list[tuple[str, bytes, str, str]] = []  # (file, PNG bytes, title, caption)
 
-    def add(name: str, fig, title: str, caption: str, why_missing: str) -> None:
-        if fig is None:
+    def add(name: str, image, title: str, caption: str, why_missing: str) -> None:
+        if image is None:
             missing.append(f"{title}: {why_missing}")
             return
-        fig.savefig(fig_dir / name, dpi=fig.dpi)
-        figures.append((name, title, caption))
+        png = encode_png(image)
+        (fig_dir / name).write_bytes(png)
+        figures.append((name, png, title, caption))
 
     add("top_view.png", F.top_views(c.street_points, c.street, c.registration, c.overview, frame),
         "Top view, before and after", "Street points coloured by street segment (grey: ground and "
@@ -102,7 +104,7 @@ def write_report(out_dir: Path, context: ReportContext) -> Path:
         f"(pairs beyond {values.get('cutoff_m', 10):g} m ignored), and errors against the truth.",
         "needs evaluate metrics with a reference cloud or truth")
 
-    page = _page(c, values, rows, figures, fig_dir, missing)
+    page = _page(c, values, rows, figures, missing)
     path = out_dir / "report.html"
     path.write_text(page, encoding="utf-8")
     return path
@@ -213,8 +215,8 @@ def _timings_table(timings: dict[str, float], values: dict) -> str:
 WIDE_FIGURES = ("top_view.png", "error_histogram.png")
 
 
-def _figure_html(fig_dir: Path, name: str, title: str, caption: str) -> str:
-    data = base64.b64encode((fig_dir / name).read_bytes()).decode("ascii")
+def _figure_html(name: str, png: bytes, title: str, caption: str) -> str:
+    data = base64.b64encode(png).decode("ascii")
     wide = " wide" if name in WIDE_FIGURES else ""
     return (f'<figure class="fig{wide}"><h3>{html.escape(title)}</h3><img alt="{html.escape(title)}" '
             f'src="data:image/png;base64,{data}"><figcaption>{html.escape(caption)} '
@@ -236,7 +238,7 @@ def _title(c: ReportContext) -> str:
     return str(recipe_name or scene_name or "run")
 
 
-def _page(c: ReportContext, values: dict, rows: list[dict], figures, fig_dir: Path, missing: list[str]) -> str:
+def _page(c: ReportContext, values: dict, rows: list[dict], figures, missing: list[str]) -> str:
     name = c.title or _title(c)
     scene_line = (f"scene <code>{html.escape(str(c.scene.root))}</code> · CRS {html.escape(c.scene.crs)}"
                   if c.scene is not None else "no scene")
@@ -255,7 +257,7 @@ def _page(c: ReportContext, values: dict, rows: list[dict], figures, fig_dir: Pa
         f"<h1>crossview report — {html.escape(name)}</h1>",
         f'<p class="sub">{scene_line}<br>{" · ".join(counts) or "nothing computed"}</p>',
         "<h2>Results</h2>", _headline(values),
-        "<h2>Figures</h2>", '<div class="figs">', *(_figure_html(fig_dir, *f) for f in figures), "</div>",
+        "<h2>Figures</h2>", '<div class="figs">', *(_figure_html(*f) for f in figures), "</div>",
     ]
     if missing:
         parts.append('<div class="missing"><b>Not shown:</b><ul>' +
