@@ -134,13 +134,20 @@ def overlap_pixels(label_image: np.ndarray, n_segments: int, building_index: np.
 
 
 def overview_to_building(label_image: np.ndarray, n_segments: int, building_index: np.ndarray,
-                         n_buildings: int, min_iou: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
-    """Per over-view segment: index of the true building with maximal IoU (−1 when < min_iou), and that IoU."""
+                         n_buildings: int, min_iou: float = 0.5,
+                         overlap: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Per over-view segment: index of the true building with maximal IoU (−1 when < min_iou), and that IoU.
+
+    ``overlap``: ``overlap_pixels`` of the same arguments, when the caller already has it.
+    """
     if n_segments == 0:
         return np.zeros(0, np.int64), np.zeros(0)
     if n_buildings == 0:
         return np.full(n_segments, -1, np.int64), np.zeros(n_segments)
-    inter, seg_area, bld_area = overlap_pixels(label_image, n_segments, building_index, n_buildings)
+    if overlap is None:
+        overlap = overlap_pixels(label_image, n_segments, building_index, n_buildings)
+    inter, seg_area, bld_area = overlap
     union = seg_area[:, None] + bld_area[None, :] - inter
     iou = np.divide(inter, union, out=np.zeros_like(inter), where=union > 0)
     best = iou.argmax(axis=1)
@@ -149,16 +156,27 @@ def overview_to_building(label_image: np.ndarray, n_segments: int, building_inde
 
 
 def street_to_building(point_labels: np.ndarray, true_labels: np.ndarray, n_segments: int) -> np.ndarray:
-    """Per street segment: the true building id held by most of its points (−1 if that is ground/clutter)."""
+    """Per street segment: the true building id held by most of its points (−1 if that is ground/clutter).
+
+    Ties go to the smallest id.
+    """
     if n_segments == 0:
         return np.zeros(0, np.int64)
     sel = point_labels >= 0
     seg = point_labels[sel].astype(np.int64)
     lab = true_labels[sel].astype(np.int64)
-    values, code = np.unique(lab, return_inverse=True)
+    if len(lab) == 0:
+        return np.full(n_segments, -1, np.int64)
+    low, high = int(lab.min()), int(lab.max())
+    if n_segments * (high - low + 1) <= max(len(lab), 1 << 16):
+        # A count table no larger than the points is cheaper than np.unique's sort. One column per id
+        # in [low, high]: absent ids are zero columns, which never win a non-empty row's argmax.
+        values, code = np.arange(low, high + 1, dtype=np.int64), lab - low
+    else:
+        values, code = np.unique(lab, return_inverse=True)
     counts = np.bincount(seg * len(values) + code.ravel(), minlength=n_segments * len(values))
     counts = counts.reshape(n_segments, len(values))
-    winner = values[counts.argmax(axis=1)] if len(values) else np.full(n_segments, -1)
+    winner = values[counts.argmax(axis=1)]
     empty = counts.sum(axis=1) == 0
     return np.where(empty | (winner < 0), -1, winner).astype(np.int64)
 
@@ -190,8 +208,9 @@ def segment_match_scores(matches: Matches, street: StreetSegments, overview: Ove
     match = np.asarray(matches.segment_match, np.int64)
     matched = match >= 0
 
-    if n_o and B:
-        inter, _, bld_area = overlap_pixels(overview.label_image, n_o, building_index, B)
+    overlap = overlap_pixels(overview.label_image, n_o, building_index, B) if n_o and B else None
+    if overlap is not None:
+        inter, _, bld_area = overlap
         covers = inter >= min_cover * np.maximum(bld_area, 1)[None, :]          # (n_o, B)
     else:
         covers = np.zeros((n_o, B), bool)
@@ -201,7 +220,7 @@ def segment_match_scores(matches: Matches, street: StreetSegments, overview: Ove
     has_counterpart = known.copy()
     has_counterpart[known] = covers[:, st_b[known]].any(axis=0) if n_o else False
 
-    ov_b, _ = overview_to_building(overview.label_image, n_o, building_index, B)
+    ov_b, _ = overview_to_building(overview.label_image, n_o, building_index, B, overlap=overlap)
     ov_bid = np.where(ov_b >= 0, building_ids[np.maximum(ov_b, 0)], -1) if B else np.full(n_o, -1)
     target = np.where(matched, ov_bid[np.maximum(match, 0)] if n_o else -1, -1)
     correct_iou = matched & (st_bid >= 0) & (target == st_bid)
