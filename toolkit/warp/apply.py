@@ -23,6 +23,7 @@ from toolkit.refine.blas import single_threaded_blas
 from toolkit.refine.route import camera_route_positions, sparse_segments
 from toolkit.types import Registration, Scene, SegmentTransforms, SparseModel, StreetSegments
 from toolkit.warp.blend import SegmentIndex, blend_points, blend_rigid
+from toolkit.warp.cells import levelled_xy
 from toolkit.warp.passes import point_route_positions, reanchor_other_pass, sparse_route_positions
 
 @dataclass(frozen=True)
@@ -96,7 +97,7 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Sc
     index = SegmentIndex.build(street, transforms, max(k, 1), agree_tol_m=agree_tol_m, agree_ratio=agree_ratio,
                                max_gap_m=max_gap_m)
     pts = load_points(scene, "street_cloud", "warp")
-    xy = street.level(pts)[:, :2]
+    xy = levelled_xy(street, pts)
     carrier = np.asarray(street.carrier, np.int64)
     anchors = index.anchors(xy, carrier, valid)
     model = load_sparse(scene, "warp") if scene.has("sparse") else None
@@ -111,11 +112,12 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Sc
             ok = (seg_of_point >= 0) & np.isfinite(sparse_s)
             far = np.abs(sparse_s[ok] - segment_s[seg_of_point[ok]]) > passes.pass_gap_m
             multi = np.bincount(seg_of_point[ok][far], minlength=len(street)) > 0
-            ask = np.flatnonzero((anchors != carrier) | multi[anchors])
-            point_s = np.full(len(pts), np.nan)
-            point_s[ask] = point_route_positions(pts[ask], model.points3d, sparse_s, passes.max_gap_m)
-            anchors = reanchor_other_pass(anchors, xy, point_s, segment_s, np.asarray(index.all_tree.data), index.all_seg,
-                                          passes.pass_gap_m, passes.route_scale)
+            # (a point whose anchor has no route position is never re-anchored)
+            ask = np.flatnonzero(((anchors != carrier) | multi[anchors]) & np.isfinite(segment_s)[anchors])
+            point_s = point_route_positions(pts[ask], model.points3d, sparse_s, passes.max_gap_m)
+            anchors[ask] = reanchor_other_pass(anchors[ask], xy[ask], point_s, segment_s,
+                                               np.asarray(index.all_tree.data), index.all_seg,
+                                               passes.pass_gap_m, passes.route_scale)
     moved = blend_points(pts, xy, anchors, T, index, k, d_min, cell_m)
     names: tuple[str, ...] = ()
     R, t = np.zeros((0, 3, 3)), np.zeros((0, 3))
@@ -138,4 +140,4 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Sc
         pos, Rb = blend_rigid(C, cxy, cam_anchor, T, index, k, d_min)
         R = np.einsum("cab,cdb->cad", model.R, Rb)          # R_wc · R̄ᵀ
         t = -np.einsum("cab,cb->ca", R, pos)
-    return Registration(points=moved, image_names=names, R=R, t=t, point_segment=anchors.astype(np.int64))
+    return Registration(points=moved, image_names=names, R=R, t=t, point_segment=anchors.astype(np.int64, copy=False))
