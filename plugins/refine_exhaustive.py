@@ -161,11 +161,12 @@ class Exhaustive(Stage):
         """Tilt, exhaustive 2D search and height of segment i against over-view segment o (None: all)."""
         p = self.params
         st.target[i] = (o, box, o_normal, o_height, match_conf)
-        g0 = self._ground_step(i, seed, pts, heights, o_normal, o_height, gp, st)
+        g0 = self._ground_step(i, seed, pts, heights, o_normal, o_height, gp, st, with_height=False)   # tilt only
         fp = pts.footprint(i, p.footprint_cell_m, p.max_footprint_points, g0.R_z, g0.centre)
         if len(fp) < 10:
             return False
-        res = search_segment(fp, seed, overview.grid, overview.label_image, o, box, sp, st.outlines)
+        res = search_segment(fp, seed, overview.grid, overview.label_image, o, box, sp, st.outlines,
+                             with_seed_cost=False)
         g1 = self._ground_step(i, res.T2d, pts, heights, o_normal, o_height, gp, st)
         st.T2d[i], st.R_z[i], st.t_z[i], st.centres[i] = res.T2d, g1.R_z, g1.t_z, g1.centre
         st.cost[i] = res.cost_m
@@ -176,12 +177,13 @@ class Exhaustive(Stage):
         return bool(st.valid[i])
 
     @staticmethod
-    def _ground_step(i, T2d, pts, heights, o_normal, o_height, gp, st):
+    def _ground_step(i, T2d, pts, heights, o_normal, o_height, gp, st, with_height=True):
         """``ground_step`` of segment i, its transform-independent part computed once per segment."""
         ground, gnormals = pts.ground(i)
         if i not in st.ground:
             st.ground[i] = prepare_ground(ground, gnormals, gp)
-        return ground_step(ground, gnormals, T2d, heights, o_normal, o_height, gp, prepared=st.ground[i])
+        return ground_step(ground, gnormals, T2d, heights, o_normal, o_height, gp, prepared=st.ground[i],
+                           with_height=with_height)
 
     def _placed_by_neighbours(self, i, known, k, street, overview, pts, st, T):
         """(seed transform, over-view window) for segment i as its k nearest ``known`` neighbours place

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from toolkit.refine.columns import column_means
 from toolkit.refine.search2d import AllOutlines, SearchParams, search_segment
 from toolkit.refine.segments import thin_xy
 from toolkit.types import Grid
@@ -60,8 +61,9 @@ def joint_transforms(footprints: dict[int, np.ndarray], T2d: np.ndarray, route_s
         fp = thin_xy(np.concatenate([footprints[int(j)] for j in near]), p.cell_m, p.max_points)
         if len(fp) < 10:
             continue
-        centre = (fp @ T2d[i][:2, :2].T + T2d[i][:2, 2]).mean(axis=0)
+        centre = column_means(fp @ T2d[i][:2, :2].T + T2d[i][:2, 2])
         cr, cc = np.round(grid.world_to_pixel(centre[None])[0]).astype(int)
         box = (slice(cr - r, cr + r + 1), slice(cc - r, cc + r + 1))
-        out[i] = search_segment(fp, T2d[i], grid, label_image, None, box, sp, outlines).T2d
+        out[i] = search_segment(fp, T2d[i], grid, label_image, None, box, sp, outlines,
+                                with_seed_cost=False).T2d
     return out
