@@ -18,11 +18,13 @@ def decimate_xy(xy: np.ndarray, labels: np.ndarray, cell_m: float) -> tuple[np.n
 
 
 def nearest_segment(points: np.ndarray, to_xy: np.ndarray, seg_xy: np.ndarray, seg_labels: np.ndarray,
-                    radius_m: float, cell_m: float = 0.5, chunk: int = 1 << 20) -> np.ndarray:
+                    radius_m: float, cell_m: float = 0.5, chunk: int = 1 << 20,
+                    skip: np.ndarray | None = None) -> np.ndarray:
     """(M,) int32 label of the nearest segment point within ``radius_m`` in 2D, -1 when none.
 
     points: (M,3); to_xy: (2,3) rows of the levelling rotation giving horizontal coordinates;
-    seg_xy, seg_labels: the segments' points, decimated to one per (label, ``cell_m`` cell).
+    seg_xy, seg_labels: the segments' points, decimated to one per (label, ``cell_m`` cell);
+    skip: optional (M,) bool, rows whose answer the caller does not need (not searched, left -1).
     """
     out = np.full(len(points), -1, dtype=np.int32)
     if len(seg_xy) == 0 or len(points) == 0:
@@ -30,11 +32,29 @@ def nearest_segment(points: np.ndarray, to_xy: np.ndarray, seg_xy: np.ndarray, s
     rep_xy, rep_lab = decimate_xy(seg_xy, seg_labels, cell_m)
     tree = cKDTree(rep_xy)
     for s in range(0, len(points), chunk):
-        dist, idx = tree.query(points[s:s + chunk] @ to_xy.T, k=1, distance_upper_bound=radius_m, workers=-1)
+        xy = points[s:s + chunk] @ to_xy.T  # whole chunks: the same products as without ``skip``
+        rows = np.arange(len(xy)) if skip is None else np.flatnonzero(~skip[s:s + chunk])
+        dist, idx = tree.query(xy[rows], k=1, distance_upper_bound=radius_m, workers=-1)
         hit = np.isfinite(dist)
-        part = out[s:s + chunk]
-        part[hit] = rep_lab[idx[hit]]
+        out[s + rows[hit]] = rep_lab[idx[hit]]
     return out
+
+
+def sort_within_groups(values: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """``values`` ordered by (group, value), as ``values[np.lexsort((values, groups))]``.
+
+    Without zeros and NaNs, values that compare equal have equal bits, so an unstable sort by value
+    followed by a stable sort by group gives the same array; two quick sorts replace the merge
+    sorts of lexsort (~4x faster). Small group numbers are sorted as int16 (radix sort).
+    """
+    floating = np.issubdtype(values.dtype, np.floating)
+    if floating and ((values == 0).any() or np.isnan(values).any()):  # ±0 and NaNs: keep lexsort's order
+        return values[np.lexsort((values, groups))]
+    by_value = np.argsort(values)
+    key = groups[by_value]
+    if len(key) and key.min() >= 0 and key.max() <= np.iinfo(np.int16).max:
+        key = key.astype(np.int16)
+    return values[by_value[np.argsort(key, kind="stable")]]
 
 
 def group_quantile(values: np.ndarray, groups: np.ndarray, n: int, q: float) -> np.ndarray:
@@ -42,8 +62,7 @@ def group_quantile(values: np.ndarray, groups: np.ndarray, n: int, q: float) -> 
     (groups < 0 ignored); NaN for empty groups."""
     keep = groups >= 0
     v, g = values[keep], groups[keep]
-    order = np.lexsort((v, g))
-    v, g = v[order], g[order]
+    v = sort_within_groups(v, g)
     counts = np.bincount(g, minlength=n)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     out = np.full(n, np.nan)

@@ -31,12 +31,29 @@ def _edge_chunks(indptr: np.ndarray, indices: np.ndarray):
         yield src, indices[indptr[s]:indptr[e]]
 
 
+def _differing(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs (a[i], b[i]) with a[i] != b[i]."""
+    differ = np.flatnonzero(a != b)
+    return a[differ], b[differ]
+
+
 def _compress(parent: np.ndarray) -> np.ndarray:
     while True:
         grand = parent[parent]
         if np.array_equal(grand, parent):
             return parent
         parent = grand
+
+
+def sorted_unique(values: np.ndarray) -> np.ndarray:
+    """``np.unique(values)`` for 1-D integers; numpy 2's hash-based unique is several times slower."""
+    if len(values) == 0:
+        return values.copy()
+    ordered = np.sort(values)
+    keep = np.empty(len(ordered), dtype=bool)
+    keep[0] = True
+    np.not_equal(ordered[1:], ordered[:-1], out=keep[1:])
+    return ordered[keep]
 
 
 def components(n: int, indptr: np.ndarray, indices: np.ndarray) -> np.ndarray:
@@ -46,21 +63,21 @@ def components(n: int, indptr: np.ndarray, indices: np.ndarray) -> np.ndarray:
     edges mostly join points already in one tree; scipy.sparse.csgraph then solves the small
     graph of the remaining roots. This keeps memory near the edge list itself, where
     connected_components on the full graph needs ~6x it (float64 data, transposes).
+    Components are numbered in the order of their smallest node, as csgraph numbers them.
     """
     parent = np.arange(n, dtype=np.int32)
     for src, dst in _edge_chunks(indptr, indices):
-        ps, pd = parent[src], parent[dst]
-        differ = ps != pd
-        np.minimum.at(parent, np.maximum(ps[differ], pd[differ]), np.minimum(ps[differ], pd[differ]))
-    parent = _compress(parent)
+        ps, pd = _differing(parent[src], parent[dst])
+        np.minimum.at(parent, np.maximum(ps, pd), np.minimum(ps, pd))
+    parent = _compress(parent)  # parent[i] <= i: each tree's root is its smallest node
     keys = []
     for src, dst in _edge_chunks(indptr, indices):
-        ps, pd = parent[src], parent[dst]
-        differ = ps != pd
-        keys.append(np.unique(np.minimum(ps[differ], pd[differ]).astype(np.int64) * n
-                              + np.maximum(ps[differ], pd[differ])))
-    pairs = np.unique(np.concatenate(keys)) if keys else np.zeros(0, np.int64)
-    roots, parent = np.unique(parent, return_inverse=True)
+        ps, pd = _differing(parent[src], parent[dst])
+        keys.append(sorted_unique(np.minimum(ps, pd).astype(np.int64) * n + np.maximum(ps, pd)))
+    pairs = sorted_unique(np.concatenate(keys)) if keys else np.zeros(0, np.int64)
+    is_root = parent == np.arange(n, dtype=np.int32)
+    roots = np.flatnonzero(is_root)
+    parent = (np.cumsum(is_root, dtype=np.int32) - 1)[parent]  # rank of each root among the roots
     if len(pairs):
         a = np.searchsorted(roots, pairs // n)
         b = np.searchsorted(roots, pairs % n)
