@@ -16,6 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from toolkit.refine.bilinear import cells_inside, interpolate, world_to_rows_cols
+from toolkit.refine.columns import centred, minus_row
 from toolkit.refine.transforms import rotation_between, tilt_deg
 from toolkit.types import Grid, OverviewSegments, Scene
 
@@ -47,20 +49,13 @@ class HeightGrid:
         self.h, self.grid = np.ascontiguousarray(heights, np.float64), grid
 
     def sample(self, xy: np.ndarray) -> np.ndarray:
-        a, b, c, d, e, f = self.grid.transform           # Grid.world_to_pixel, without its stacking
-        det = a * e - b * d
-        dx, dy = xy[:, 0] - c, xy[:, 1] - f
-        row = (-d * dx + a * dy) / det - 0.5
-        col = (e * dx - b * dy) / det - 0.5
+        row, col = world_to_rows_cols(self.grid.transform, xy)
         H, W = self.h.shape
-        r0, c0 = np.floor(row), np.floor(col)
-        ok = (r0 >= 0) & (c0 >= 0) & (r0 < H - 1) & (c0 < W - 1)
+        r0, c0, inside = cells_inside(row, col, H, W)
+        if inside is None:
+            return interpolate(self.h.ravel(), W, row, col, r0, c0)
         out = np.full(len(xy), np.nan)
-        fr, fc = row[ok] - r0[ok], col[ok] - c0[ok]
-        r, c = r0[ok].astype(np.int64), c0[ok].astype(np.int64)
-        flat, at = self.h.ravel(), r * W + c            # flat gathers: ~2× faster than 2D indexing
-        out[ok] = (flat.take(at) * (1 - fr) * (1 - fc) + flat.take(at + 1) * (1 - fr) * fc
-                   + flat.take(at + W) * fr * (1 - fc) + flat.take(at + W + 1) * fr * fc)
+        out[inside] = interpolate(self.h.ravel(), W, row[inside], col[inside], r0[inside], c0[inside])
         return out
 
 
@@ -85,15 +80,20 @@ def height_source(scene: Scene, overview: OverviewSegments) -> HeightGrid | None
     return None
 
 
-def trimmed_mean(x: np.ndarray, lo: float, hi: float) -> float:
+def trimmed_mean(x: np.ndarray, lo: float, hi: float, scratch: bool = False) -> float:
     """Mean of the [lo, hi) quantile slice of the finite values (a partial sort: only the slice's
-    bounds are ordered, its members are the same as a full sort's)."""
-    x = x[np.isfinite(x)]
+    bounds are ordered, its members are the same as a full sort's). ``scratch``: x may be reordered
+    in place."""
+    finite = np.isfinite(x)
+    if finite.all():
+        x = x if scratch else x.copy()
+    else:
+        x = x[finite]
     if len(x) == 0:
         return float("nan")
     a, b = int(np.floor(lo * len(x))), max(int(np.ceil(hi * len(x))), int(np.floor(lo * len(x))) + 1)
     b = min(b, len(x))
-    x.partition(sorted({a, b - 1}))                  # in place: x is already a copy
+    x.partition(sorted({a, b - 1}))
     return float(x[a:b].mean())
 
 
@@ -105,15 +105,21 @@ class PreparedGround:
     street_normal: np.ndarray | None   # levelled street ground normal (None: unknown)
     xy: np.ndarray                     # (G,2) contiguous levelled x, y of the ground points
     relative: np.ndarray               # (G,3) ground points minus the centre
+    z: np.ndarray                      # (G,) contiguous levelled heights of the ground points
 
 
 def prepare_ground(points: np.ndarray, normals: np.ndarray | None, p: GroundParams) -> PreparedGround | None:
     """The transform-independent part of ``ground_step`` (None when too few ground points)."""
     if len(points) < p.min_ground_points:
         return None
-    centre = np.median(points, axis=0)
+    centre = _column_medians(points)
     return PreparedGround(centre, street_ground_normal(points, normals, p), np.ascontiguousarray(points[:, :2]),
-                          points - centre)
+                          minus_row(points, centre), np.ascontiguousarray(points[:, 2]))
+
+
+def _column_medians(points: np.ndarray) -> np.ndarray:
+    """``np.median(points, axis=0)``, one contiguous column at a time (the same order statistics)."""
+    return np.array([np.median(points[:, j]) for j in range(points.shape[1])])
 
 
 def street_ground_normal(points: np.ndarray, normals: np.ndarray | None, p: GroundParams) -> np.ndarray | None:
@@ -122,10 +128,11 @@ def street_ground_normal(points: np.ndarray, normals: np.ndarray | None, p: Grou
         return None
     cos_max = np.cos(np.radians(p.normal_max_angle_deg))
     if normals is not None:
-        n = normals * np.sign(normals[:, 2:3] + 1e-12)
-        n = n[n[:, 2] >= cos_max]
-        if len(n) >= p.min_ground_points:
-            m = np.median(n, axis=0)
+        up = np.sign(normals[:, 2] + 1e-12)
+        n = [normals[:, j] * up for j in range(3)]          # normals turned upwards, column by column
+        near_vertical = n[2] >= cos_max
+        if np.count_nonzero(near_vertical) >= p.min_ground_points:
+            m = np.array([np.median(column[near_vertical]) for column in n])
             return m / np.linalg.norm(m)
     return _plane_normal(points, p)
 
@@ -133,7 +140,7 @@ def street_ground_normal(points: np.ndarray, normals: np.ndarray | None, p: Grou
 def _plane_normal(xyz: np.ndarray, p: GroundParams) -> np.ndarray | None:
     """Least-squares plane z = a x + b y + c (None when the points span too little area), from the
     3×3 scatter of the centred points (normal equations; the intercept decouples once centred)."""
-    q = xyz - xyz.mean(axis=0)
+    q = centred(xyz)
     S = q.T @ q
     sxx, sxy, syy = S[0, 0], S[0, 1], S[1, 1]
     smallest = 0.5 * (sxx + syy) - np.sqrt(0.25 * (sxx - syy) ** 2 + sxy ** 2)   # of the xy scatter
@@ -147,41 +154,52 @@ def _plane_normal(xyz: np.ndarray, p: GroundParams) -> np.ndarray | None:
 
 def ground_step(ground: np.ndarray, ground_normals: np.ndarray | None, T2d: np.ndarray,
                 heights: HeightGrid | None, overview_normal: np.ndarray, overview_height: float,
-                p: GroundParams, prepared: PreparedGround | None = None) -> GroundResult:
+                p: GroundParams, prepared: PreparedGround | None = None, with_height: bool = True) -> GroundResult:
     """R_Z and t_z for one segment. ``ground``: (G,3) levelled ground points of the segment.
 
     ``overview_normal`` / ``overview_height``: the over-view segment's terrain normal and height,
     used when the height source cannot give them at the segment's ground points. ``prepared``:
     ``prepare_ground`` of the same points (computed here when not given; pass it when the segment
-    is stepped several times).
+    is stepped several times). ``with_height=False``: only the tilt is wanted (t_z is NaN; the over-view
+    heights are not even sampled when the segment has no street ground normal).
     """
     if len(ground) < p.min_ground_points:
         return GroundResult(np.eye(3), float("nan"), np.zeros(3), 0.0, len(ground))  # filled later
     if prepared is None:
         prepared = prepare_ground(ground, ground_normals, p)
     centre = prepared.centre
+    n_street = prepared.street_normal
+    if not with_height and n_street is None:
+        return GroundResult(np.eye(3), float("nan"), centre, 0.0, len(ground))
     world_xy = prepared.xy @ np.ascontiguousarray(T2d[:2, :2].T) + T2d[:2, 2]
     h = heights.sample(world_xy) if heights is not None else np.full(len(ground), np.nan)
-    dz = h - ground[:, 2]
+    dz = h - prepared.z
     t0 = trimmed_mean(dz, p.trim_low, p.trim_high)
     n_over = None
     if np.isfinite(t0):
-        keep = np.abs(dz - t0) < p.inlier_height_m
-        if keep.sum() >= p.min_ground_points:
-            n_over = _plane_normal(np.column_stack([world_xy[keep], h[keep]]), p)
+        dz -= t0
+        keep = np.abs(dz, out=dz) < p.inlier_height_m
+        n_keep = int(np.count_nonzero(keep))
+        if n_keep >= p.min_ground_points:
+            xyz = np.empty((n_keep, 3))
+            for j, column in enumerate((world_xy[:, 0], world_xy[:, 1], h)):   # 1D compressions: ~3× faster
+                xyz[:, j] = column[keep]
+            n_over = _plane_normal(xyz, p)
     if n_over is None:
         n_over = np.asarray(overview_normal, np.float64)
-    R2 = np.eye(3)
-    R2[:2, :2] = T2d[:2, :2]
-    n_street = prepared.street_normal
     R_z = np.eye(3)
     if n_street is not None:
+        R2 = np.eye(3)
+        R2[:2, :2] = T2d[:2, :2]
         R_z = rotation_between(n_street, R2.T @ n_over)
         if tilt_deg(R_z) > p.max_tilt_deg:
             R_z = np.eye(3)
+    if not with_height:
+        return GroundResult(R_z, float("nan"), centre, tilt_deg(R_z), len(ground))
     z_new = prepared.relative @ R_z[2] + centre[2]
     if np.isfinite(t0):
-        t_z = trimmed_mean(h - z_new, p.trim_low, p.trim_high)
+        h -= z_new
+        t_z = trimmed_mean(h, p.trim_low, p.trim_high, scratch=True)
     else:
         t_z = float(overview_height - np.median(z_new))  # NaN when the over-view has no height
     return GroundResult(R_z, t_z, centre, tilt_deg(R_z), len(ground))

@@ -13,9 +13,12 @@ the distance map's transform (per-segment searches, thousands of offsets), or, f
 few offsets and large footprints, one gather of the map under every kernel entry used by any
 rotation and one matrix product (campus, DSM: the refine stage's correlations 3.2 s → 1.1 s CPU).
 Searches against every outline (``seg = None``) cut their distance map from one field per over-view
-(``AllOutlines``) instead of two distance transforms each.
+(``AllOutlines``) instead of two distance transforms each; a search against one segment's outline
+computes its own, with distances clamped beyond what is ever read (the truncation plus the reach of
+a bilinear sample and of a central difference): exact wherever read, ~1.5× cheaper.
 The optimum is then refined below one pixel: a parabola through the neighbouring grid costs, then a
-few Gauss-Newton steps on the signed distance (point-to-outline least squares, inliers only).
+few Gauss-Newton steps on the signed distance (point-to-outline least squares, inliers only;
+``toolkit.refine.subpixel``), stepped together for all the searches of a pass (``search_segments``).
 
 The outline is the edge of the segment's pixel mask (between inside and outside pixel centres), so
 there is no half-pixel inward bias from using boundary-pixel centres.
@@ -30,7 +33,9 @@ from scipy import ndimage
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy.fft import fft, ifft, irfft, next_fast_len, rfft, rfft2
 
-from toolkit.refine.transforms import rigid2d
+from toolkit.refine.bilinear import cells_inside, interpolate, interpolate_planes, rows_cols, world_to_rows_cols
+from toolkit.refine.columns import column_means
+from toolkit.refine.subpixel import gauss_newton_many, rotation_about
 from toolkit.types import Grid
 
 
@@ -56,16 +61,32 @@ class SearchResult:
 
 
 class OutlineField:
-    """Signed distance (metres, + outside) to one segment's mask edge, on a window of the grid."""
+    """Signed distance (metres, + outside) to one segment's mask edge, on a window of the grid.
 
-    def __init__(self, grid: Grid, mask_window: np.ndarray, row0: int, col0: int) -> None:
-        stacked = _signed_distance_and_gradient(grid, mask_window.astype(bool))
-        self._set(grid, stacked, row0, col0)
+    ``clamp_px``: distances are exact up to this many pixels, clamped beyond (``_clamped_edt``): enough
+    when only distances up to the truncation, plus the reach of a bilinear sample and of a central
+    difference, are ever read (``search_segment``); None: exact everywhere.
+    """
 
-    def _set(self, grid: Grid, stacked: np.ndarray, row0: int, col0: int, trunc: np.ndarray | None = None) -> None:
+    def __init__(self, grid: Grid, mask_window: np.ndarray, row0: int, col0: int, clamp_px: int | None = None) -> None:
+        mask = mask_window.astype(bool)
+        if mask.all() or not mask.any():        # no edge in the window: scipy's transform, as ever
+            clamp_px = None
+        planes = _signed_distance_and_gradient(grid, mask, clamp_px)
+        self._set(grid, planes, row0, col0, 0, 0, mask_window.shape)
+
+    def _set(self, grid: Grid, planes: np.ndarray, row0: int, col0: int, at_row: int, at_col: int,
+             shape: tuple[int, int], trunc: np.ndarray | None = None) -> None:
+        """``planes``: (3,H,W) signed distance, d/dx, d/dy on a raster holding the window (grid rows
+        row0…, cols col0…, ``shape``) at its row ``at_row``, col ``at_col`` (no copy of the window)."""
         self.grid, self.row0, self.col0 = grid, row0, col0
-        self._stacked = stacked                         # (h,w,3): signed distance, d/dx, d/dy
-        self.sdf, self.grad_x, self.grad_y = stacked[..., 0], stacked[..., 1], stacked[..., 2]
+        h, w = shape
+        self.raster = planes                                  # shared by every window cut from it
+        self._flat = planes.reshape(3, -1)
+        self._width = planes.shape[2]
+        self.raster_origin = self._origin = at_row * self._width + at_col   # flat index, window's top-left
+        window = (slice(at_row, at_row + h), slice(at_col, at_col + w))
+        self.sdf, self.grad_x, self.grad_y = planes[0][window], planes[1][window], planes[2][window]
         self._trunc = trunc
 
     def truncated(self, truncate_m: float) -> np.ndarray:
@@ -74,50 +95,35 @@ class OutlineField:
             return np.minimum(np.abs(self.sdf), truncate_m)
         return self._trunc
 
-    def sample_with_gradient(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(inside (N,) bool, (M,3) signed distance, d/dx, d/dy at the M points inside the window):
-        one bilinear gather of the three fields stacked per pixel."""
+    def _locate(self, xy: np.ndarray):
         h, w = self.sdf.shape
-        a, b, c, d, e, f = self.grid.transform       # Grid.world_to_pixel, without its stacking
-        det = a * e - b * d
-        dx, dy = xy[:, 0] - c, xy[:, 1] - f
-        row = (-d * dx + a * dy) / det - 0.5 - self.row0
-        col = (e * dx - b * dy) / det - 0.5 - self.col0
-        r0, c0 = np.floor(row), np.floor(col)
-        inside = (r0 >= 0) & (c0 >= 0) & (r0 < h - 1) & (c0 < w - 1)
-        fr, fc = (row - r0)[inside, None], (col - c0)[inside, None]
-        corners = (r0[inside].astype(np.int64) * w + c0[inside].astype(np.int64))[:, None] + np.array([0, 1, w, w + 1])
-        weights = np.concatenate([(1 - fr) * (1 - fc), (1 - fr) * fc, fr * (1 - fc), fr * fc], axis=1)
-        values = self._stacked.reshape(h * w, 3).take(corners, axis=0)        # (M,4,3)
-        return inside, np.einsum("mk,mkf->mf", weights, values)
+        row, col = world_to_rows_cols(self.grid.transform, xy, self.row0, self.col0)
+        r0, c0, inside = cells_inside(row, col, h, w)
+        return row, col, r0, c0, inside
 
-    def to_window(self, xy: np.ndarray) -> np.ndarray:
-        rc = self.grid.world_to_pixel(xy)
-        rc[:, 0] -= self.row0
-        rc[:, 1] -= self.col0
-        return rc
+    def sample_with_gradient(self, xy: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+        """(inside (N,) bool or None when all are, (M,3) signed distance, d/dx, d/dy at the M points
+        inside the window)."""
+        row, col, r0, c0, inside = self._locate(xy)
+        if inside is not None:
+            row, col, r0, c0 = row[inside], col[inside], r0[inside], c0[inside]
+        return inside, interpolate_planes(self._flat, self._width, row, col, r0, c0, self._origin)
 
-    def sample(self, xy: np.ndarray, field: np.ndarray | None = None, outside: float = np.nan) -> np.ndarray:
-        arr = self.sdf if field is None else field
-        rc = self.to_window(xy)
-        return _bilinear(arr, rc, outside)
-
-
-def _bilinear(arr: np.ndarray, rc: np.ndarray, outside: float) -> np.ndarray:
-    h, w = arr.shape
-    r0 = np.floor(rc[:, 0]).astype(np.int64)
-    c0 = np.floor(rc[:, 1]).astype(np.int64)
-    fr, fc = rc[:, 0] - r0, rc[:, 1] - c0
-    ok = (r0 >= 0) & (c0 >= 0) & (r0 < h - 1) & (c0 < w - 1)
-    out = np.full(len(rc), outside, dtype=np.float64)
-    r, c, fr, fc = r0[ok], c0[ok], fr[ok], fc[ok]
-    out[ok] = (arr[r, c] * (1 - fr) * (1 - fc) + arr[r, c + 1] * (1 - fr) * fc
-               + arr[r + 1, c] * fr * (1 - fc) + arr[r + 1, c + 1] * fr * fc)
-    return out
+    def sample_truncated(self, xy: np.ndarray, truncate_m: float) -> np.ndarray:
+        """min(|signed distance|, truncate_m) at xy (truncate_m outside the window)."""
+        row, col, r0, c0, inside = self._locate(xy)
+        sdf = self._flat[0]
+        if inside is None:
+            out = interpolate(sdf, self._width, row, col, r0, c0, self._origin)
+        else:
+            out = np.full(len(xy), float(truncate_m))
+            out[inside] = interpolate(sdf, self._width, row[inside], col[inside], r0[inside], c0[inside], self._origin)
+        np.abs(out, out=out)
+        return np.minimum(out, truncate_m, out=out)
 
 
 def _signed_distance_and_gradient(grid: Grid, inside: np.ndarray, clamp_px: int | None = None) -> np.ndarray:
-    """(h,w,3) signed distance to the edge of the ``inside`` mask (metres, + outside; the edge runs
+    """(3,h,w) signed distance to the edge of the ``inside`` mask (metres, + outside; the edge runs
     between inside and outside pixel centres) and its world gradient (d/dx, d/dy).
 
     ``clamp_px``: distances are only needed up to this many pixels (exact up to it, somewhere in
@@ -129,14 +135,14 @@ def _signed_distance_and_gradient(grid: Grid, inside: np.ndarray, clamp_px: int 
         d_in = ndimage.distance_transform_edt(inside)
     else:
         d_out, d_in = _clamped_edt(inside, clamp_px), _clamped_edt(~inside, clamp_px)
-    out = np.empty(inside.shape + (3,))
-    out[..., 0] = np.where(inside, -(d_in - 0.5), d_out - 0.5) * grid.gsd_m
+    out = np.empty((3,) + inside.shape)
+    out[0] = np.where(inside, -(d_in - 0.5), d_out - 0.5) * grid.gsd_m
     a, b, _, d, e, _ = grid.transform
     # world gradient = J^-T (d/dcol, d/drow), J maps (dcol, drow) → (dx, dy)
     jinv_t = np.linalg.inv(np.array([[a, b], [d, e]])).T
-    g_r, g_c = np.gradient(out[..., 0])
-    out[..., 1] = jinv_t[0, 0] * g_c + jinv_t[0, 1] * g_r
-    out[..., 2] = jinv_t[1, 0] * g_c + jinv_t[1, 1] * g_r
+    g_r, g_c = np.gradient(out[0])
+    out[1] = jinv_t[0, 0] * g_c + jinv_t[0, 1] * g_r
+    out[2] = jinv_t[1, 0] * g_c + jinv_t[1, 1] * g_r
     return out
 
 
@@ -152,6 +158,8 @@ def _clamped_edt(features: np.ndarray, clamp_px: int) -> np.ndarray:
     right = np.minimum.accumulate(np.where(features, cols, np.int32(2 * far + 2 * w))[:, ::-1], axis=1)[:, ::-1]
     g = np.minimum(np.minimum(cols - left, right - cols), far)
     g2 = g * g
+    if far * far + clamp_px * clamp_px <= np.iinfo(np.int16).max:
+        g2 = g2.astype(np.int16)         # the same whole numbers in half the memory traffic
     d2 = g2.copy()
     for dy in range(1, min(clamp_px, h - 1) + 1):
         np.minimum(d2[dy:], g2[:-dy] + dy * dy, out=d2[dy:])
@@ -181,7 +189,7 @@ class AllOutlines:
         h, w = self.labels.shape
         self._clamp = int(np.ceil(truncate_m / grid.gsd_m)) + 3
         self._done = np.zeros((-(-h // self.TILE), -(-w // self.TILE)), bool)
-        self._stacked: np.ndarray | None = None        # (h,w,3), filled tile by tile
+        self._planes: np.ndarray | None = None         # (3,h,w), filled tile by tile
         self._trunc: np.ndarray | None = None
 
     def field(self, r0: int, c0: int, r1: int, c1: int, truncate_m: float) -> OutlineField | None:
@@ -190,15 +198,15 @@ class AllOutlines:
         h, w = self.labels.shape
         if r0 < 0 or c0 < 0 or r1 > h or c1 > w or r1 <= r0 or c1 <= c0 or truncate_m != self.truncate_m:
             return None
-        if self._stacked is None:
-            self._stacked, self._trunc = np.empty((h, w, 3)), np.empty((h, w))
+        if self._planes is None:
+            self._planes, self._trunc = np.empty((3, h, w)), np.empty((h, w))
         t = self.TILE
         for ti in range(r0 // t, (r1 - 1) // t + 1):
             for tj in range(c0 // t, (c1 - 1) // t + 1):
                 if not self._done[ti, tj]:
                     self._compute_tile(ti, tj)
         f = OutlineField.__new__(OutlineField)
-        f._set(self.grid, np.ascontiguousarray(self._stacked[r0:r1, c0:c1]), r0, c0, self._trunc[r0:r1, c0:c1])
+        f._set(self.grid, self._planes, r0, c0, r0, c0, (r1 - r0, c1 - c0), self._trunc[r0:r1, c0:c1])
         return f
 
     def _compute_tile(self, ti: int, tj: int) -> None:
@@ -208,25 +216,29 @@ class AllOutlines:
         R1, C1 = min(R0 + t, h), min(C0 + t, w)
         a0, b0, a1, b1 = max(R0 - halo, 0), max(C0 - halo, 0), min(R1 + halo, h), min(C1 + halo, w)
         tile = _signed_distance_and_gradient(self.grid, self.labels[a0:a1, b0:b1] >= 0, self._clamp)
-        core = tile[R0 - a0:R1 - a0, C0 - b0:C1 - b0]
-        self._stacked[R0:R1, C0:C1] = core
-        self._trunc[R0:R1, C0:C1] = np.minimum(np.abs(core[..., 0]), self.truncate_m)
+        core = tile[:, R0 - a0:R1 - a0, C0 - b0:C1 - b0]
+        self._planes[:, R0:R1, C0:C1] = core
+        self._trunc[R0:R1, C0:C1] = np.minimum(np.abs(core[0]), self.truncate_m)
         self._done[ti, tj] = True
 
 
-def _splat_stack(rc: np.ndarray) -> tuple[np.ndarray, int, int]:
-    """Bilinear splats of A sets of fractional (row, col) (A,N,2) into one kernel frame: (A,KH,KW)
-    kernels and the frame's top-left pixel (row, col), shared by every set."""
-    base_r, base_c = int(np.floor(rc[..., 0].min())), int(np.floor(rc[..., 1].min()))
-    r = rc[..., 0] - base_r
-    c = rc[..., 1] - base_c
+def _splat_stack(rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, int, int]:
+    """Bilinear splats of A sets of N fractional (row, col) ((A,N) each) into one kernel frame:
+    (A,KH,KW) kernels and the frame's top-left pixel (row, col), shared by every set."""
+    base_r, base_c = int(np.floor(rows.min())), int(np.floor(cols.min()))
+    r = rows - base_r
+    c = cols - base_c
     r0, c0 = np.floor(r).astype(np.int64), np.floor(c).astype(np.int64)
     fr, fc = r - r0, c - c0
-    A = rc.shape[0]
+    A = rows.shape[0]
     h, w = int(r0.max()) + 2, int(c0.max()) + 2
     at = (np.arange(A, dtype=np.int64) * (h * w))[:, None] + r0 * w + c0
-    keys = np.stack([at, at + 1, at + w, at + w + 1])
-    weights = np.stack([(1 - fr) * (1 - fc), (1 - fr) * fc, fr * (1 - fc), fr * fc])
+    keys = np.empty((4,) + at.shape, np.int64)      # corner-major, as np.stack of the four: bincount sums in this order
+    weights = np.empty((4,) + at.shape)
+    gr, gc = 1 - fr, 1 - fc
+    for corner, (offset, wr, wc) in enumerate(((0, gr, gc), (1, gr, fc), (w, fr, gc), (w + 1, fr, fc))):
+        np.add(at, offset, out=keys[corner])
+        np.multiply(wr, wc, out=weights[corner])
     k = np.bincount(keys.ravel(), weights=weights.ravel(), minlength=A * h * w)
     return k.reshape(A, h, w), base_r, base_c
 
@@ -242,9 +254,11 @@ def _correlate_valid(sub: np.ndarray, k: np.ndarray, max_direct_offsets: int = 1
         P, Q = next_fast_len(sub.shape[0], False), next_fast_len(sub.shape[1], True)
         # pruned 2D transforms: the kernels' rows beyond KH are zero (row transforms of KH rows
         # only), and only the n_r valid output rows are transformed back along the rows
-        spec = fft(rfft(k[:, ::-1, ::-1], n=Q, axis=2), n=P, axis=1) * rfft2(sub, s=(P, Q))[None]
-        rows = ifft(spec, axis=1)[:, KH - 1:KH - 1 + n_r]
-        return irfft(rows, n=Q, axis=2)[:, :, KW - 1:KW - 1 + n_c]
+        # (in place where scipy can: the same transforms, fewer large temporaries)
+        spec = fft(rfft(k[:, ::-1, ::-1], n=Q, axis=2), n=P, axis=1, overwrite_x=True)
+        spec *= rfft2(sub, s=(P, Q))
+        rows = ifft(spec, axis=1, overwrite_x=True)[:, KH - 1:KH - 1 + n_r]
+        return irfft(rows, n=Q, axis=2, overwrite_x=True)[:, :, KW - 1:KW - 1 + n_c]
     kernels = k.reshape(A, KH * KW)
     used = np.flatnonzero((kernels != 0).any(axis=0))      # entries of any rotation (they overlap a lot)
     u, v = np.divmod(used, KW)
@@ -259,18 +273,50 @@ def _parabola(cm: float, c0: float, cp: float) -> float:
     return float(np.clip(0.5 * (cm - cp) / den, -0.5, 0.5))
 
 
+@dataclass
+class _GridFit:
+    """A search after its grid stage: the grid optimum, awaiting the sub-pixel step."""
+
+    street_xy: np.ndarray
+    T_seed: np.ndarray
+    T_grid: np.ndarray
+    centre: np.ndarray
+    field: OutlineField
+    p: SearchParams
+
+
 def search_segment(street_xy: np.ndarray, T_seed: np.ndarray, grid: Grid, label_image: np.ndarray,
                    seg: int | None, bbox: tuple[slice, slice], p: SearchParams,
-                   outlines: AllOutlines | None = None) -> SearchResult:
+                   outlines: AllOutlines | None = None, with_seed_cost: bool = True) -> SearchResult:
     """Best 2D rigid transform of ``street_xy`` (levelled) onto over-view segment ``seg``.
 
     ``bbox``: the (row, col) slices of the window the footprint centre may move in (before the
     margin); ``seg = None`` takes the outline of every over-view segment in the window (cut from
     ``outlines`` when given: one field for all such searches on the same over-view).
+    ``with_seed_cost=False``: ``seed_cost_m`` is not evaluated (NaN).
     """
+    return search_segments([(street_xy, T_seed, seg, bbox)], grid, label_image, p, outlines, with_seed_cost)[0]
+
+
+def search_segments(problems: list[tuple[np.ndarray, np.ndarray, int | None, tuple[slice, slice]]], grid: Grid,
+                    label_image: np.ndarray, p: SearchParams, outlines: AllOutlines | None = None,
+                    with_seed_cost: bool = True) -> list[SearchResult]:
+    """``search_segment`` of independent problems (street_xy, T_seed, seg, bbox), their sub-pixel
+    steps run together (``toolkit.refine.subpixel``): the same results as one at a time."""
+    fits = [_grid_stage(xy, T_seed, grid, label_image, seg, bbox, p, outlines) for xy, T_seed, seg, bbox in problems]
+    refined: list[np.ndarray | None] = [None] * len(fits)
+    if p.subpixel:
+        refined = gauss_newton_many([(f.street_xy, f.T_grid, f.field, f.p) for f in fits])
+    return [_result(f, T_gn, with_seed_cost) for f, T_gn in zip(fits, refined)]
+
+
+def _grid_stage(street_xy: np.ndarray, T_seed: np.ndarray, grid: Grid, label_image: np.ndarray,
+                seg: int | None, bbox: tuple[slice, slice], p: SearchParams, outlines: AllOutlines | None) -> _GridFit:
+    """Every rotation and one-pixel offset (one batched correlation), then a parabola through the
+    neighbouring grid costs."""
     gsd = grid.gsd_m
     seed_xy = street_xy @ T_seed[:2, :2].T + T_seed[:2, 2]
-    centre = seed_xy.mean(axis=0)
+    centre = column_means(seed_xy)
     n_rot = round(p.rotation_range_deg / p.rotation_step_deg)
     angles = np.radians(np.arange(-n_rot, n_rot + 1) * p.rotation_step_deg)
     margin = int(np.ceil(p.margin_m / gsd))
@@ -281,10 +327,11 @@ def search_segment(street_xy: np.ndarray, T_seed: np.ndarray, grid: Grid, label_
     dc0 = int(np.floor(min(0.0, cs.start - margin - c_rc[1])))
     dc1 = int(np.ceil(max(0.0, cs.stop - 1 + margin - c_rc[1])))
 
-    rel = seed_xy - centre
+    rel_x, rel_y = seed_xy[:, 0] - centre[0], seed_xy[:, 1] - centre[1]
     cos, sin = np.cos(angles)[:, None], np.sin(angles)[:, None]
-    xy = np.stack([rel[:, 0] * cos - rel[:, 1] * sin, rel[:, 0] * sin + rel[:, 1] * cos], axis=-1) + centre
-    kernels, k_r0, k_c0 = _splat_stack(grid.world_to_pixel(xy))       # (A,KH,KW), one frame for all rotations
+    rows, cols = rows_cols(grid.transform, (rel_x * cos - rel_y * sin) + centre[0],
+                           (rel_x * sin + rel_y * cos) + centre[1])
+    kernels, k_r0, k_c0 = _splat_stack(rows, cols)       # (A,KH,KW), one frame for all rotations
     KH, KW = kernels.shape[1:]
     win_r0, win_c0 = k_r0 + dr0 - 1, k_c0 + dc0 - 1
     win_r1, win_c1 = k_r0 + KH + dr1 + 1, k_c0 + KW + dc1 + 1
@@ -293,7 +340,10 @@ def search_segment(street_xy: np.ndarray, T_seed: np.ndarray, grid: Grid, label_
         field = outlines.field(win_r0, win_c0, win_r1, win_c1, p.truncate_m)
     if field is None:
         labels = _window(label_image, win_r0, win_c0, win_r1, win_c1, fill=-1)
-        field = OutlineField(grid, labels >= 0 if seg is None else labels == seg, win_r0, win_c0)
+        # distances beyond the truncation (or the inlier band, if wider) plus a bilinear sample's and
+        # a central difference's reach are never read: exact up to there is the exact field
+        clamp_px = int(np.ceil(max(p.truncate_m, p.inlier_m) / gsd)) + 3
+        field = OutlineField(grid, labels >= 0 if seg is None else labels == seg, win_r0, win_c0, clamp_px)
     trunc = field.truncated(p.truncate_m)
 
     n = len(street_xy)
@@ -314,31 +364,28 @@ def search_segment(street_xy: np.ndarray, T_seed: np.ndarray, grid: Grid, label_
             off_c += _parabola(*costs[ki, ri, ci - 1:ci + 2])
     shift = np.array([a * off_c + b * off_r, d * off_c + e * off_r])
 
-    def chamfer(T: np.ndarray) -> np.ndarray:
-        xy = street_xy @ T[:2, :2].T + T[:2, 2]
-        return np.minimum(np.abs(field.sample(xy, outside=p.truncate_m)), p.truncate_m)
+    return _GridFit(street_xy, T_seed, rotation_about(ang, centre, shift) @ T_seed, centre, field, p)
 
-    T_grid = _about(ang, centre, shift) @ T_seed
-    T_best, d_final = T_grid, chamfer(T_grid)
-    if p.subpixel:
-        T_gn = _gauss_newton(street_xy, T_grid, field, p)
-        if T_gn is not None:
-            d_gn = chamfer(T_gn)
-            if d_gn.mean() <= d_final.mean() + 1e-6:
-                T_best, d_final = T_gn, d_gn
-    moved = (street_xy @ T_best[:2, :2].T + T_best[:2, 2]).mean(axis=0) - centre
+
+def _result(fit: _GridFit, T_gn: np.ndarray | None, with_seed_cost: bool) -> SearchResult:
+    """The grid or the refined transform, whichever fits better, and its figures."""
+    street_xy, T_seed, field, p = fit.street_xy, fit.T_seed, fit.field, fit.p
+
+    def chamfer(T: np.ndarray) -> np.ndarray:
+        return field.sample_truncated(street_xy @ T[:2, :2].T + T[:2, 2], p.truncate_m)
+
+    T_best, d_final = fit.T_grid, chamfer(fit.T_grid)
+    if T_gn is not None:
+        d_gn = chamfer(T_gn)
+        if d_gn.mean() <= d_final.mean() + 1e-6:
+            T_best, d_final = T_gn, d_gn
+    moved = column_means(street_xy @ T_best[:2, :2].T + T_best[:2, 2]) - fit.centre
     rot = np.degrees(np.arctan2(T_best[1, 0], T_best[0, 0]) - np.arctan2(T_seed[1, 0], T_seed[0, 0]))
     return SearchResult(
-        T2d=T_best, cost_m=float(d_final.mean()), seed_cost_m=float(chamfer(T_seed).mean()),
+        T2d=T_best, cost_m=float(d_final.mean()),
+        seed_cost_m=float(chamfer(T_seed).mean()) if with_seed_cost else float("nan"),
         inlier_ratio=float((d_final < p.inlier_m).mean()), shift_m=float(np.hypot(*moved)),
         rotation_deg=float((rot + 180) % 360 - 180))
-
-
-def _about(theta: float, centre: np.ndarray, shift: np.ndarray) -> np.ndarray:
-    """Rotation by theta about ``centre`` followed by ``shift`` (world frame)."""
-    R = rigid2d(theta, np.zeros(2))
-    R[:2, 2] = centre - R[:2, :2] @ centre + shift
-    return R
 
 
 def _window(arr: np.ndarray, r0: int, c0: int, r1: int, c1: int, fill=False) -> np.ndarray:
@@ -349,37 +396,3 @@ def _window(arr: np.ndarray, r0: int, c0: int, r1: int, c1: int, fill=False) -> 
     if rr1 > rr0 and cc1 > cc0:
         out[rr0 - r0:rr1 - r0, cc0 - c0:cc1 - c0] = arr[rr0:rr1, cc0:cc1]
     return out
-
-
-def _gauss_newton(street_xy: np.ndarray, T0: np.ndarray, field: OutlineField, p: SearchParams,
-                  iterations: int = 10) -> np.ndarray | None:
-    """Point-to-outline least squares on the signed distance (inliers within inlier_m)."""
-    T = T0.copy()
-    for _ in range(iterations):
-        xy = street_xy @ np.ascontiguousarray(T[:2, :2].T) + T[:2, 2]
-        inside, sg = field.sample_with_gradient(xy)
-        near = np.abs(sg[:, 0]) < p.inlier_m
-        if np.count_nonzero(near) < 6:
-            return None
-        sg, xy = sg[near], xy[inside][near]
-        c = xy.mean(axis=0)
-        rx, ry = xy[:, 0] - c[0], xy[:, 1] - c[1]
-        J = np.empty((len(sg), 3))
-        J[:, 0] = sg[:, 1] * -ry + sg[:, 2] * rx
-        J[:, 1:] = sg[:, 1:]
-        H = J.T @ J
-        H[np.diag_indices(3)] += 1e-6
-        s = sg[:, 0]
-        step = -np.linalg.solve(H, J.T @ s)
-        if not np.all(np.isfinite(step)):
-            return None
-        T = _about(step[0], c, step[1:]) @ T
-        if abs(step[0]) < 1e-6 and np.hypot(*step[1:]) < 1e-4:
-            break
-    gsd = field.grid.gsd_m
-    c0 = (street_xy @ T0[:2, :2].T + T0[:2, 2]).mean(axis=0)
-    c1 = (street_xy @ T[:2, :2].T + T[:2, 2]).mean(axis=0)
-    dtheta = np.arctan2(T[1, 0], T[0, 0]) - np.arctan2(T0[1, 0], T0[0, 0])
-    if np.hypot(*(c1 - c0)) > 2 * gsd or abs(np.degrees(dtheta)) > 2 * p.rotation_step_deg:
-        return None
-    return T

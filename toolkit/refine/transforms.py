@@ -43,7 +43,8 @@ def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Smallest rotation taking unit vector a onto unit vector b (Rodrigues)."""
     a = np.asarray(a, float) / np.linalg.norm(a)
     b = np.asarray(b, float) / np.linalg.norm(b)
-    v = np.cross(a, b)
+    # np.cross's products and differences, without its overhead (~40 µs a call)
+    v = np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
     s, c = np.linalg.norm(v), float(a @ b)
     if s < 1e-12:
         if c > 0:
