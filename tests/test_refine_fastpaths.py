@@ -163,3 +163,73 @@ def test_search_without_the_seed_cost_finds_the_same_transform():
     lean = search_segment(street, seed, g, lab, 0, box, SearchParams(), with_seed_cost=False)
     assert np.array_equal(full.T2d, lean.T2d) and full.cost_m == lean.cost_m and np.isnan(lean.seed_cost_m)
     assert full.seed_cost_m > full.cost_m
+
+
+def _plain_gauss_newton(street_xy, T0, field, p, iterations=10):
+    """The step as first written, one problem at a time (the reference for the batched one)."""
+    T = T0.copy()
+    for _ in range(iterations):
+        xy = street_xy @ np.ascontiguousarray(T[:2, :2].T) + T[:2, 2]
+        inside, sg = field.sample_with_gradient(xy)
+        inside = np.ones(len(xy), bool) if inside is None else inside
+        near = np.abs(sg[:, 0]) < p.inlier_m
+        if np.count_nonzero(near) < 6:
+            return None
+        sg, xy = sg[near], xy[inside][near]
+        c = xy.mean(axis=0)
+        rx, ry = xy[:, 0] - c[0], xy[:, 1] - c[1]
+        J = np.empty((len(sg), 3))
+        J[:, 0] = sg[:, 1] * -ry + sg[:, 2] * rx
+        J[:, 1:] = sg[:, 1:]
+        H = J.T @ J
+        H[np.diag_indices(3)] += 1e-6
+        step = -np.linalg.solve(H, J.T @ sg[:, 0])
+        if not np.all(np.isfinite(step)):
+            return None
+        R = rigid2d(step[0], np.zeros(2))
+        R[:2, 2] = c - R[:2, :2] @ c + step[1:]
+        T = R @ T
+        if abs(step[0]) < 1e-6 and np.hypot(*step[1:]) < 1e-4:
+            break
+    c0 = (street_xy @ T0[:2, :2].T + T0[:2, 2]).mean(axis=0)
+    c1 = (street_xy @ T[:2, :2].T + T[:2, 2]).mean(axis=0)
+    dtheta = np.arctan2(T[1, 0], T[0, 0]) - np.arctan2(T0[1, 0], T0[0, 0])
+    if np.hypot(*(c1 - c0)) > 2 * field.grid.gsd_m or abs(np.degrees(dtheta)) > 2 * p.rotation_step_deg:
+        return None
+    return T
+
+
+def test_batched_searches_equal_one_search_at_a_time():
+    from toolkit.refine.search2d import AllOutlines, search_segments
+    from toolkit.refine.subpixel import gauss_newton_many
+
+    rng = np.random.default_rng(28)
+    g = Grid((0.5, 0, 500000.0, 0, -0.5, 4400150.0), 300, 300, "EPSG:32617")
+    lab = -np.ones((300, 300), np.int32)
+    lab[50:101, 80:141], lab[160:230, 40:90], lab[170:260, 180:250] = 0, 1, 2
+    boxes = ndimage.find_objects(lab + 1)
+    problems = []
+    for k, box in enumerate(boxes * 3):
+        rr, cc = box
+        a, b = g.pixel_to_world(rr.start, cc.start), g.pixel_to_world(rr.stop - 1, cc.stop - 1)
+        south = np.column_stack([rng.uniform(a[0], b[0], 300), np.full(300, b[1] - 0.25)])
+        west = np.column_stack([np.full(200, a[0] - 0.25), rng.uniform(b[1], a[1], 200)])
+        street = np.vstack([south, west]) + rng.normal(0, 0.05, (500, 2)) - [500000.0, 4400000.0]
+        seed = rigid2d(np.radians(rng.uniform(-6, 6)), np.array([500000.0, 4400000.0]) + rng.uniform(-2, 2, 2))
+        problems.append((street, seed, k if k < 3 else None, box))        # own fields, then shared ones
+    outlines = AllOutlines(g, lab, 3.0)
+    together = search_segments(problems, g, lab, SearchParams(), outlines)
+    for prob, res in zip(problems, together):
+        alone = search_segment(prob[0], prob[1], g, lab, prob[2], prob[3], SearchParams(), outlines)
+        assert np.array_equal(alone.T2d, res.T2d) and alone.cost_m == res.cost_m
+    # the batched step against the step as first written, over own and shared fields at once
+    fields = [OutlineField(g, lab[30:130, 60:160] >= 0, 30, 60), outlines.field(30, 20, 280, 270, 3.0),
+              outlines.field(140, 20, 280, 120, 3.0), OutlineField(g, lab[140:250, 20:110] == 1, 140, 20, 9)]
+    cases = [(street, seed, fields[k % 4], SearchParams()) for k, (street, seed, _, _) in enumerate(problems)]
+    cases += [(street, res.T2d @ rigid2d(0.002, np.array([0.2, -0.1])), fields[1], SearchParams())
+              for (street, _, _, _), res in zip(problems, together)]
+    batched = gauss_newton_many(cases)
+    refs = [_plain_gauss_newton(*case) for case in cases]
+    assert sum(r is not None for r in refs) >= 9                          # most steps are accepted
+    assert all((r is None and b is None) or (r is not None and b is not None and np.array_equal(r, b))
+               for r, b in zip(refs, batched))

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from toolkit.refine.columns import column_means
-from toolkit.refine.search2d import AllOutlines, SearchParams, search_segment
+from toolkit.refine.search2d import AllOutlines, SearchParams, search_segments
 from toolkit.refine.segments import thin_xy
 from toolkit.types import Grid
 
@@ -55,6 +55,7 @@ def joint_transforms(footprints: dict[int, np.ndarray], T2d: np.ndarray, route_s
     out = np.array(T2d, np.float64, copy=True)
     outlines = outlines if outlines is not None else AllOutlines(grid, label_image, p.truncate_m)
     r = int(np.ceil(p.shift_m / grid.gsd_m))
+    searched, problems = [], []
     for i in idx:
         near = idx[(np.abs(route_s[idx] - route_s[i]) <= p.window_m)
                    & (np.linalg.norm(anchors_xy[idx] - anchors_xy[i], axis=1) <= 2 * p.window_m)]
@@ -63,7 +64,8 @@ def joint_transforms(footprints: dict[int, np.ndarray], T2d: np.ndarray, route_s
             continue
         centre = column_means(fp @ T2d[i][:2, :2].T + T2d[i][:2, 2])
         cr, cc = np.round(grid.world_to_pixel(centre[None])[0]).astype(int)
-        box = (slice(cr - r, cr + r + 1), slice(cc - r, cc + r + 1))
-        out[i] = search_segment(fp, T2d[i], grid, label_image, None, box, sp, outlines,
-                                with_seed_cost=False).T2d
+        searched.append(i)
+        problems.append((fp, T2d[i], None, (slice(cr - r, cr + r + 1), slice(cc - r, cc + r + 1))))
+    for i, res in zip(searched, search_segments(problems, grid, label_image, sp, outlines, with_seed_cost=False)):
+        out[i] = res.T2d
     return out

@@ -17,7 +17,8 @@ Searches against every outline (``seg = None``) cut their distance map from one 
 computes its own, with distances clamped beyond what is ever read (the truncation plus the reach of
 a bilinear sample and of a central difference): exact wherever read, ~1.5× cheaper.
 The optimum is then refined below one pixel: a parabola through the neighbouring grid costs, then a
-few Gauss-Newton steps on the signed distance (point-to-outline least squares, inliers only).
+few Gauss-Newton steps on the signed distance (point-to-outline least squares, inliers only;
+``toolkit.refine.subpixel``), stepped together for all the searches of a pass (``search_segments``).
 
 The outline is the edge of the segment's pixel mask (between inside and outside pixel centres), so
 there is no half-pixel inward bias from using boundary-pixel centres.
@@ -25,7 +26,6 @@ there is no half-pixel inward bias from using boundary-pixel centres.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,6 +35,7 @@ from scipy.fft import fft, ifft, irfft, next_fast_len, rfft, rfft2
 
 from toolkit.refine.bilinear import cells_inside, interpolate, interpolate_planes, rows_cols, world_to_rows_cols
 from toolkit.refine.columns import column_means
+from toolkit.refine.subpixel import gauss_newton_many, rotation_about
 from toolkit.types import Grid
 
 
@@ -80,9 +81,10 @@ class OutlineField:
         row0…, cols col0…, ``shape``) at its row ``at_row``, col ``at_col`` (no copy of the window)."""
         self.grid, self.row0, self.col0 = grid, row0, col0
         h, w = shape
+        self.raster = planes                                  # shared by every window cut from it
         self._flat = planes.reshape(3, -1)
         self._width = planes.shape[2]
-        self._origin = at_row * self._width + at_col          # flat index of the window's top-left pixel
+        self.raster_origin = self._origin = at_row * self._width + at_col   # flat index, window's top-left
         window = (slice(at_row, at_row + h), slice(at_col, at_col + w))
         self.sdf, self.grad_x, self.grad_y = planes[0][window], planes[1][window], planes[2][window]
         self._trunc = trunc
@@ -271,6 +273,18 @@ def _parabola(cm: float, c0: float, cp: float) -> float:
     return float(np.clip(0.5 * (cm - cp) / den, -0.5, 0.5))
 
 
+@dataclass
+class _GridFit:
+    """A search after its grid stage: the grid optimum, awaiting the sub-pixel step."""
+
+    street_xy: np.ndarray
+    T_seed: np.ndarray
+    T_grid: np.ndarray
+    centre: np.ndarray
+    field: OutlineField
+    p: SearchParams
+
+
 def search_segment(street_xy: np.ndarray, T_seed: np.ndarray, grid: Grid, label_image: np.ndarray,
                    seg: int | None, bbox: tuple[slice, slice], p: SearchParams,
                    outlines: AllOutlines | None = None, with_seed_cost: bool = True) -> SearchResult:
@@ -281,6 +295,25 @@ def search_segment(street_xy: np.ndarray, T_seed: np.ndarray, grid: Grid, label_
     ``outlines`` when given: one field for all such searches on the same over-view).
     ``with_seed_cost=False``: ``seed_cost_m`` is not evaluated (NaN).
     """
+    return search_segments([(street_xy, T_seed, seg, bbox)], grid, label_image, p, outlines, with_seed_cost)[0]
+
+
+def search_segments(problems: list[tuple[np.ndarray, np.ndarray, int | None, tuple[slice, slice]]], grid: Grid,
+                    label_image: np.ndarray, p: SearchParams, outlines: AllOutlines | None = None,
+                    with_seed_cost: bool = True) -> list[SearchResult]:
+    """``search_segment`` of independent problems (street_xy, T_seed, seg, bbox), their sub-pixel
+    steps run together (``toolkit.refine.subpixel``): the same results as one at a time."""
+    fits = [_grid_stage(xy, T_seed, grid, label_image, seg, bbox, p, outlines) for xy, T_seed, seg, bbox in problems]
+    refined: list[np.ndarray | None] = [None] * len(fits)
+    if p.subpixel:
+        refined = gauss_newton_many([(f.street_xy, f.T_grid, f.field, f.p) for f in fits])
+    return [_result(f, T_gn, with_seed_cost) for f, T_gn in zip(fits, refined)]
+
+
+def _grid_stage(street_xy: np.ndarray, T_seed: np.ndarray, grid: Grid, label_image: np.ndarray,
+                seg: int | None, bbox: tuple[slice, slice], p: SearchParams, outlines: AllOutlines | None) -> _GridFit:
+    """Every rotation and one-pixel offset (one batched correlation), then a parabola through the
+    neighbouring grid costs."""
     gsd = grid.gsd_m
     seed_xy = street_xy @ T_seed[:2, :2].T + T_seed[:2, 2]
     centre = column_means(seed_xy)
@@ -331,32 +364,28 @@ def search_segment(street_xy: np.ndarray, T_seed: np.ndarray, grid: Grid, label_
             off_c += _parabola(*costs[ki, ri, ci - 1:ci + 2])
     shift = np.array([a * off_c + b * off_r, d * off_c + e * off_r])
 
+    return _GridFit(street_xy, T_seed, rotation_about(ang, centre, shift) @ T_seed, centre, field, p)
+
+
+def _result(fit: _GridFit, T_gn: np.ndarray | None, with_seed_cost: bool) -> SearchResult:
+    """The grid or the refined transform, whichever fits better, and its figures."""
+    street_xy, T_seed, field, p = fit.street_xy, fit.T_seed, fit.field, fit.p
+
     def chamfer(T: np.ndarray) -> np.ndarray:
         return field.sample_truncated(street_xy @ T[:2, :2].T + T[:2, 2], p.truncate_m)
 
-    T_grid = _about(ang, centre, shift) @ T_seed
-    T_best, d_final = T_grid, chamfer(T_grid)
-    if p.subpixel:
-        T_gn = _gauss_newton(street_xy, T_grid, field, p)
-        if T_gn is not None:
-            d_gn = chamfer(T_gn)
-            if d_gn.mean() <= d_final.mean() + 1e-6:
-                T_best, d_final = T_gn, d_gn
-    moved = column_means(street_xy @ T_best[:2, :2].T + T_best[:2, 2]) - centre
+    T_best, d_final = fit.T_grid, chamfer(fit.T_grid)
+    if T_gn is not None:
+        d_gn = chamfer(T_gn)
+        if d_gn.mean() <= d_final.mean() + 1e-6:
+            T_best, d_final = T_gn, d_gn
+    moved = column_means(street_xy @ T_best[:2, :2].T + T_best[:2, 2]) - fit.centre
     rot = np.degrees(np.arctan2(T_best[1, 0], T_best[0, 0]) - np.arctan2(T_seed[1, 0], T_seed[0, 0]))
     return SearchResult(
         T2d=T_best, cost_m=float(d_final.mean()),
         seed_cost_m=float(chamfer(T_seed).mean()) if with_seed_cost else float("nan"),
         inlier_ratio=float((d_final < p.inlier_m).mean()), shift_m=float(np.hypot(*moved)),
         rotation_deg=float((rot + 180) % 360 - 180))
-
-
-def _about(theta: float, centre: np.ndarray, shift: np.ndarray) -> np.ndarray:
-    """Rotation by theta about ``centre`` followed by ``shift`` (world frame)."""
-    c, s = np.cos(theta), np.sin(theta)            # rigid2d(theta, 0), without its temporaries
-    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    R[:2, 2] = centre - R[:2, :2] @ centre + shift
-    return R
 
 
 def _window(arr: np.ndarray, r0: int, c0: int, r1: int, c1: int, fill=False) -> np.ndarray:
@@ -367,38 +396,3 @@ def _window(arr: np.ndarray, r0: int, c0: int, r1: int, c1: int, fill=False) -> 
     if rr1 > rr0 and cc1 > cc0:
         out[rr0 - r0:rr1 - r0, cc0 - c0:cc1 - c0] = arr[rr0:rr1, cc0:cc1]
     return out
-
-
-def _gauss_newton(street_xy: np.ndarray, T0: np.ndarray, field: OutlineField, p: SearchParams,
-                  iterations: int = 10) -> np.ndarray | None:
-    """Point-to-outline least squares on the signed distance (inliers within inlier_m)."""
-    T = T0.copy()
-    for _ in range(iterations):
-        xy = street_xy @ np.ascontiguousarray(T[:2, :2].T) + T[:2, 2]
-        inside, sg = field.sample_with_gradient(xy)
-        near = np.flatnonzero(np.abs(sg[:, 0]) < p.inlier_m)
-        if len(near) < 6:
-            return None
-        sg = sg.take(near, axis=0)           # row gathers: several times faster than boolean row masks
-        xy = xy.take(near if inside is None else np.flatnonzero(inside)[near], axis=0)
-        c = column_means(xy)
-        rx, ry = xy[:, 0] - c[0], xy[:, 1] - c[1]
-        J = np.empty((len(sg), 3))
-        J[:, 0] = sg[:, 1] * -ry + sg[:, 2] * rx
-        J[:, 1:] = sg[:, 1:]
-        H = J.T @ J
-        H.flat[::4] += 1e-6
-        s = sg[:, 0]
-        step = -np.linalg.solve(H, J.T @ s)
-        if not all(math.isfinite(v) for v in step):
-            return None
-        T = _about(step[0], c, step[1:]) @ T
-        if abs(step[0]) < 1e-6 and np.hypot(*step[1:]) < 1e-4:
-            break
-    gsd = field.grid.gsd_m
-    c0 = column_means(street_xy @ T0[:2, :2].T + T0[:2, 2])
-    c1 = column_means(street_xy @ T[:2, :2].T + T[:2, 2])
-    dtheta = np.arctan2(T[1, 0], T[0, 0]) - np.arctan2(T0[1, 0], T0[0, 0])
-    if np.hypot(*(c1 - c0)) > 2 * gsd or abs(np.degrees(dtheta)) > 2 * p.rotation_step_deg:
-        return None
-    return T
