@@ -10,7 +10,6 @@ from toolkit.refine.bilinear import cells_inside, interpolate, interpolate_plane
 from toolkit.refine.columns import centred, column_means
 from toolkit.refine.ground3d import GroundParams, HeightGrid, ground_step, prepare_ground, street_ground_normal
 from toolkit.refine.search2d import OutlineField, SearchParams, search_segment
-from toolkit.refine.segments import thin_columns, thin_xy
 from toolkit.refine.transforms import rigid2d, rotation_between
 from toolkit.types import Grid
 
@@ -75,16 +74,6 @@ def test_height_grid_sample_equals_the_plain_formula_and_is_nan_outside():
     assert np.array_equal(got[ok], _plain_bilinear(h, rc[ok])) and np.isnan(got[~ok]).all()
     inner = xy[ok]
     assert np.array_equal(HeightGrid(h, g).sample(inner), got[ok])     # all inside: the no-compression path
-
-
-def test_thinning_by_columns_equals_thinning_rows():
-    rng = np.random.default_rng(23)
-    xy = rng.normal(0, 15, (4000, 2)) + [3e5, 4e6]
-    cell = np.floor(xy / 0.25).astype(np.int64)
-    _, inv, counts = np.unique(cell, axis=0, return_inverse=True, return_counts=True)
-    ref = np.column_stack([np.bincount(inv.ravel(), xy[:, 0]), np.bincount(inv.ravel(), xy[:, 1])]) / counts[:, None]
-    assert np.array_equal(thin_columns(xy[:, 0].copy(), xy[:, 1].copy(), 0.25, 10**6), ref)
-    assert np.array_equal(thin_xy(xy, 0.25, 100), ref[np.linspace(0, len(ref) - 1, 100).astype(np.int64)])
 
 
 def test_rotation_between_uses_numpys_cross_product():

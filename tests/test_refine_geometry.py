@@ -327,7 +327,7 @@ def test_search_with_the_shared_outline_field_finds_the_same_transform():
 
 
 def test_thinning_by_counting_equals_thinning_by_sorting():
-    from toolkit.refine.segments import thin_xy
+    from toolkit.refine.segments import thin_columns, thin_xy
 
     rng = np.random.default_rng(14)
     xy = rng.normal(0, 20, (5000, 2)) + [3e5, 4e6]
@@ -335,6 +335,8 @@ def test_thinning_by_counting_equals_thinning_by_sorting():
     _, inv, counts = np.unique(cell, axis=0, return_inverse=True, return_counts=True)
     ref = np.column_stack([np.bincount(inv.ravel(), xy[:, 0]), np.bincount(inv.ravel(), xy[:, 1])]) / counts[:, None]
     assert np.array_equal(thin_xy(xy, 0.5, 10**6), ref)
+    assert np.array_equal(thin_columns(xy[:, 0].copy(), xy[:, 1].copy(), 0.5, 10**6), ref)
+    assert np.array_equal(thin_xy(xy, 0.5, 100), ref[np.linspace(0, len(ref) - 1, 100).astype(np.int64)])
     sparse = np.vstack([xy[:10], xy[:1] + 5e4])                # a key range far too wide to count
     assert len(thin_xy(sparse, 0.5, 10**6)) == len(np.unique(np.floor(sparse / 0.5), axis=0))
 

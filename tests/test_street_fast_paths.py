@@ -4,12 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import connected_components
 
 from toolkit.street import order
 from toolkit.street.associate import group_quantile, nearest_segment, sort_within_groups
-from toolkit.street.growing import components, sorted_unique
+from toolkit.street.growing import sorted_unique
 
 
 def _plain_morton(cells: np.ndarray) -> np.ndarray:
@@ -63,17 +61,6 @@ def test_sorted_unique_is_numpy_unique():
     cases = (rng.integers(-50, 50, 3000), rng.integers(0, 2**40, 500), np.zeros(0, np.int64), np.array([7]))
     for values in cases:
         assert np.array_equal(sorted_unique(values), np.unique(values))
-
-
-@pytest.mark.parametrize("seed", range(3))
-def test_components_number_like_scipy(seed):
-    rng = np.random.default_rng(seed)
-    n, k = 4000, 6
-    idx = np.clip(np.arange(n)[:, None] + rng.integers(-60, 60, (n, k)), 0, n - 1).astype(np.int32)
-    keep = rng.random((n, k)) < 0.12
-    indptr = np.concatenate([[0], np.cumsum(keep.sum(axis=1))])
-    graph = csr_matrix((np.ones(int(keep.sum())), idx[keep], indptr), shape=(n, n))
-    assert np.array_equal(components(n, indptr, idx[keep]), connected_components(graph, directed=False)[1])
 
 
 @pytest.mark.parametrize("case", ["ties", "float32", "zeros", "nan", "ints", "many_groups"])

@@ -115,6 +115,7 @@ def test_components_match_scipy(seed):
     count, theirs = connected_components(graph, directed=False)
     assert len(np.unique(ours)) == count
     assert len(np.unique(ours.astype(np.int64) * n + theirs)) == count  # same partition
+    assert np.array_equal(ours, theirs)  # and numbered the same way
 
 
 def _planes_graph(pts: np.ndarray, normals: np.ndarray, k: int = 10):
