@@ -7,7 +7,7 @@ import pytest
 
 from toolkit.street import order
 from toolkit.street.associate import group_quantile, nearest_segment, sort_within_groups
-from toolkit.street.growing import sorted_unique
+from toolkit.arrays import sorted_unique
 
 
 def _plain_morton(cells: np.ndarray) -> np.ndarray:

@@ -285,7 +285,7 @@ def test_cell_weights_approximate_per_point_weights_and_chunks_do_not_matter(tmp
 
 
 def test_cell_keys_group_points_by_anchor_then_cell_like_a_sort():
-    from toolkit.warp.blend import cell_keys
+    from toolkit.warp.cells import cell_keys
 
     rng = np.random.default_rng(21)
     xy = rng.uniform(-40, 60, (20000, 2))

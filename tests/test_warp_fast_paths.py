@@ -15,7 +15,8 @@ from toolkit.refine.consistency import gap_matrix
 from toolkit.refine.segments import input_anchors
 from toolkit.types import SegmentTransforms, StreetSegments
 from toolkit.warp.blend import blend_points, footprint_distances, inverse_log_weights, point_distances
-from toolkit.warp.cells import cell_blocks, column_bounds, dense_rank, levelled_xy
+from toolkit.arrays import column_bounds, dense_rank
+from toolkit.warp.cells import cell_blocks, levelled_xy
 from toolkit.warp.index import SegmentIndex, footprint_gaps
 
 

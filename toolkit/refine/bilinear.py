@@ -46,11 +46,11 @@ def cells_inside(row: np.ndarray, col: np.ndarray, height: int,
     return r0, c0, (None if inside.all() else inside)
 
 
-def _corner_index(r0: np.ndarray, c0: np.ndarray, width: int, origin: int) -> np.ndarray:
+def _corner_index(r0: np.ndarray, c0: np.ndarray, width: int | np.ndarray, origin: int | np.ndarray) -> np.ndarray:
     """Flat index of each top-left corner (whole numbers far below 2**53: exact in float64)."""
     at = r0 * width
     at += c0
-    if origin:
+    if np.ndim(origin) or origin:
         at += origin
     return at.astype(np.int64)
 
@@ -74,22 +74,26 @@ def interpolate(flat: np.ndarray, width: int, row: np.ndarray, col: np.ndarray, 
     return out
 
 
-def interpolate_planes(planes: np.ndarray, width: int, row: np.ndarray, col: np.ndarray, r0: np.ndarray,
-                       c0: np.ndarray, origin: int = 0) -> np.ndarray:
+def interpolate_planes(planes: np.ndarray, width: int | np.ndarray, row: np.ndarray, col: np.ndarray,
+                       r0: np.ndarray, c0: np.ndarray, origin: int | np.ndarray = 0) -> np.ndarray:
     """(M,F) values of F flattened rasters ``planes`` (F, n) at (row, col), as ``interpolate``; the
     operations of ``np.einsum("mk,mkf->mf", w, v)`` with corner weights
-    w = [(1-fr)(1-fc), (1-fr)fc, fr(1-fc), fr·fc] (einsum sums the four corners in order)."""
+    w = [(1-fr)(1-fc), (1-fr)fc, fr(1-fc), fr·fc] (einsum sums the four corners in order).
+    ``width`` and ``origin`` may be per point (several rasters stacked in one flat buffer)."""
     fr, fc = row - r0, col - c0
     gr, gc = 1 - fr, 1 - fc
     at = _corner_index(r0, c0, width, origin)
     weights = (gr * gc, gr * fc, fr * gc, fr * fc)
-    offsets = (1, width, width + 1)
+    if np.ndim(width) == 0:  # one width: shifted views of the plane instead of three more index arrays
+        corners = ((0, at), (1, at), (width, at), (width + 1, at))
+    else:
+        corners = ((0, at), (0, at + 1), (0, at + width), (0, at + (width + 1)))
     out = np.empty((len(at), planes.shape[0]))
     for f, plane in enumerate(planes):
         acc = plane.take(at)
         acc *= weights[0]
-        for offset, weight in zip(offsets, weights[1:]):
-            term = plane[offset:].take(at)       # = plane.take(at + offset)
+        for (shift, index), weight in zip(corners[1:], weights[1:]):
+            term = plane[shift:].take(index)
             term *= weight
             acc += term
         out[:, f] = acc

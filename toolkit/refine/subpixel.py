@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from toolkit.refine.bilinear import rows_cols
+from toolkit.refine.bilinear import interpolate_planes, rows_cols
 from toolkit.refine.columns import column_means
 
 if TYPE_CHECKING:
@@ -157,32 +157,10 @@ def _sample_fields(problems, buffers, sources, active, xy, sizes) -> tuple[np.nd
             run += 1
         a, b = ends[j], ends[run]
         per_point = np.repeat(np.array([s[1:] for s in src[j:run]], np.int64), np.diff(ends[j:run + 1]), axis=0)
-        sg[a:b] = _sample(buffers[src[j][0]], per_point[:, 1], row[a:b], col[a:b], r0[a:b], c0[a:b], per_point[:, 0])
+        sg[a:b] = interpolate_planes(buffers[src[j][0]], per_point[:, 1], row[a:b], col[a:b], r0[a:b], c0[a:b],
+                                     per_point[:, 0])
         j = run
     return inside, sg
-
-
-def _sample(planes: np.ndarray, width: np.ndarray, row, col, r0, c0, origin: np.ndarray) -> np.ndarray:
-    """(M,3) bilinear samples of (3, n) planes, per point row width and window origin: the
-    operations of ``bilinear.interpolate_planes`` (einsum's corner order)."""
-    fr, fc = row - r0, col - c0
-    gr, gc = 1 - fr, 1 - fc
-    at = r0 * width
-    at += c0
-    at += origin
-    at = at.astype(np.int64)
-    weights = (gr * gc, gr * fc, fr * gc, fr * fc)
-    corners = (at, at + 1, at + width, at + (width + 1))
-    out = np.empty((len(at), planes.shape[0]))
-    for f, plane in enumerate(planes):
-        acc = plane.take(corners[0])
-        acc *= weights[0]
-        for index, weight in zip(corners[1:], weights[1:]):
-            term = plane.take(index)
-            term *= weight
-            acc += term
-        out[:, f] = acc
-    return out
 
 
 def _accept(problem, T: np.ndarray) -> np.ndarray | None:

@@ -16,6 +16,8 @@ The graph is built in row chunks as int32 CSR arrays.
 from __future__ import annotations
 
 import numpy as np
+
+from toolkit.arrays import sorted_unique
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
 
@@ -43,17 +45,6 @@ def _compress(parent: np.ndarray) -> np.ndarray:
         if np.array_equal(grand, parent):
             return parent
         parent = grand
-
-
-def sorted_unique(values: np.ndarray) -> np.ndarray:
-    """``np.unique(values)`` for 1-D integers; numpy 2's hash-based unique is several times slower."""
-    if len(values) == 0:
-        return values.copy()
-    ordered = np.sort(values)
-    keep = np.empty(len(ordered), dtype=bool)
-    keep[0] = True
-    np.not_equal(ordered[1:], ordered[:-1], out=keep[1:])
-    return ordered[keep]
 
 
 def components(n: int, indptr: np.ndarray, indices: np.ndarray) -> np.ndarray:

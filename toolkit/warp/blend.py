@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from toolkit.warp.cells import CellBlocks, cell_blocks, cell_keys  # noqa: F401  (re-exported)
+from toolkit.warp.cells import CellBlocks, cell_blocks
 from toolkit.warp.index import SegmentIndex
 
 

@@ -18,7 +18,8 @@ from toolkit.refine.blas import workers_for
 from toolkit.refine.consistency import gap_matrix
 from toolkit.refine.segments import input_anchors, thin_xy
 from toolkit.types import SegmentTransforms, StreetSegments
-from toolkit.warp.cells import cell_grid_keys, dense_rank
+from toolkit.arrays import dense_rank
+from toolkit.warp.cells import cell_grid_keys
 
 
 def footprint_gaps(owner: np.ndarray, other: np.ndarray, fp_xy: np.ndarray, fp_start: np.ndarray,
