@@ -5,7 +5,8 @@ Peak memory per stage: the kernel's high-water mark (VmHWM) is reset before each
 from (what earlier stages' outputs and caches hold). The writing of the outputs (registered.ply,
 report) is measured as a last row ``outputs`` (its seconds are the run's total minus the stages).
 CPU seconds (user + system, all threads) are given beside wall seconds: on a shared machine they
-drift less with the load.
+drift less with the load. Steps run one at a time here (``overlap=False``), so each one's CPU
+seconds are its own; a plain run overlaps the over-view and street steps.
 
 usage: python bench/profile_stages.py [preset | scene dir] [recipe]   (default: campus dsm.yaml)
 """
@@ -72,7 +73,8 @@ def profile(root: Path, recipe: str, out: Path):
 
     obs = MemoryObserver()
     t0, c0 = time.perf_counter(), _cpu()
-    res = run_recipe(REPO / "recipes" / recipe, scene=root, out=out, overwrite=True, rerun=False, observer=obs)
+    res = run_recipe(REPO / "recipes" / recipe, scene=root, out=out, overwrite=True, rerun=False, observer=obs,
+                     overlap=False)
     seconds, cpu = time.perf_counter() - t0, _cpu() - c0
     rows = [(step, s, obs.cpu[step], obs.rss_in[step], obs.peak[step]) for step, s in res.timings.items()]
     rows.append(("outputs", seconds - sum(res.timings.values()), cpu - sum(obs.cpu.values()),

@@ -43,6 +43,8 @@ stricter one-to-one rule (the over-view segment's best-IoU building, IoU ≥ 0.5
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +56,7 @@ from toolkit.evaluation import metrics as M
 from toolkit.evaluation import truth as T
 from toolkit.scene import load_array, load_points
 from toolkit.stage import Stage, StageParams
+from toolkit.threads import thread_budget
 from toolkit.types import (
     AdjustedCameras,
     Matches,
@@ -101,28 +104,35 @@ class Chamfer(Stage):
         ref_source, ref_path = self._reference(scene, notes)
         street_idx = M.subsample(pts, p.max_points, p.seed)
         values["street"] = {"n_points": len(pts), "n_used": len(street_idx)}
+        pair: tuple[np.ndarray, np.ndarray] | None = None
         if ref_path is None:
             values["reference"] = {"source": None, "path": None, "n_points": 0, "n_used": 0}
-            values["chamfer"] = None
         else:
             ref = _read_reference(scene, ref_source, ref_path)
             ref_idx = M.subsample(ref, p.max_points, p.seed + 1)
             values["reference"] = {"source": ref_source, "path": str(ref_path), "n_points": len(ref),
                                    "n_used": len(ref_idx)}
-            a, b = pts[street_idx], ref[ref_idx]
-            values["chamfer"] = {
-                "3d": M.mutual_nn_chamfer(a, b, p.cutoff_m).summary(p.hist_bin_m, p.cutoff_m),
-                "2d": M.mutual_nn_chamfer(a[:, :2], b[:, :2], p.cutoff_m).summary(p.hist_bin_m, p.cutoff_m),
-            }
-
-        per_point, truth_values, seg_scores = self._truth(scene, registration, cameras, matches, street,
-                                                          overview, notes)
+            pair = (pts[street_idx], ref[ref_idx])
+        dims = ("3d", "2d") if pair is not None else ()
+        # with two threads the 3D and 2D metrics run beside the truth scoring (independent
+        # computations: the same values either way)
+        with ThreadPoolExecutor(2) if dims and thread_budget() >= 2 else nullcontext() as pool:
+            pending = {d: pool.submit(self._chamfer, *pair, d) for d in dims} if pool is not None else {}
+            per_point, truth_values, seg_scores = self._truth(scene, registration, cameras, matches, street,
+                                                              overview, notes)
+            chamfer = {d: pending[d].result() if pending else self._chamfer(*pair, d) for d in dims}
+        values["chamfer"] = chamfer if pair is not None else None
         values.update({"truth": None, "matching": None, "cameras": None, **truth_values})
         values["segments"] = _segments_table(street, matches, transforms, overview, per_point, seg_scores)
         values["notes"] = notes
         return Metrics(values=values, per_point_error_m=per_point)
 
     # --- pieces -------------------------------------------------------------------------------
+    def _chamfer(self, a: np.ndarray, b: np.ndarray, dims: str) -> dict[str, Any]:
+        p = self.params
+        cols = slice(None) if dims == "3d" else slice(0, 2)
+        return M.mutual_nn_chamfer(a[:, cols], b[:, cols], p.cutoff_m).summary(p.hist_bin_m, p.cutoff_m)
+
     def _reference(self, scene: Scene, notes: list[str]) -> tuple[str | None, Path | None]:
         ref = self.params.reference
         if ref == "auto":

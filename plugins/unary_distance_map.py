@@ -50,6 +50,7 @@ from toolkit.matching import chamfer as CH
 from toolkit.matching.atlas import build_atlas
 from toolkit.observe import DebugPoints2D, DebugText
 from toolkit.stage import Stage, StageParams
+from toolkit.threads import thread_budget
 from toolkit.types import ConjugateGraphs, DataCosts, OverviewSegments, Scene, StreetSegments
 
 
@@ -163,8 +164,8 @@ class DistanceMap(Stage):
             45.0, gt=0, description="With GPS: prune candidates whose rotation differs more (None: no test).")
         gps_fit_fixes: int = Field(
             100, ge=3, description="GPS fixes per local rigid fit (nearest to the segment).")
-        workers: int = Field(2, ge=1, le=64, description="Threads for the searches (results do not depend "
-                                                      "on it).")
+        workers: int = Field(2, ge=1, le=64, description="Threads for the searches, at most the run's thread "
+                                                      "budget (toolkit.threads; results do not depend on it).")
         max_elements: int = Field(
             4_000_000, ge=10_000, description="Look-ups per vectorised batch (bounds temporary memory).")
 
@@ -273,7 +274,8 @@ class DistanceMap(Stage):
 
         def score(erosion, pts, pairs_, d_theta, d_off):
             return CH.search(atlas, erosion, A, pts, pairs_, d_theta, d_off, p.max_elements,
-                             probes=probes, probe_weight=p.free_space_weight, workers=p.workers)
+                             probes=probes, probe_weight=p.free_space_weight,
+                             workers=min(p.workers, thread_budget()))
 
         pairs = CH.Pairs(edge=pe, crops=lp[pl], theta=theta0, pivot_px=o_mid[pl] @ A.T + px0,
                          offset=np.zeros((len(pe), 2), np.int64), window_px=window)
@@ -494,6 +496,7 @@ class DistanceMap(Stage):
 def _map(fn, items, workers: int):
     """map in order; numpy releases the GIL in most of the heavy work, so threads overlap."""
     items = list(items)
+    workers = min(workers, thread_budget())
     if workers <= 1 or len(items) <= 1:
         return map(fn, items)
     from concurrent.futures import ThreadPoolExecutor

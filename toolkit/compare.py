@@ -71,6 +71,7 @@ class RunRow:
     timings: dict[str, float] = field(default_factory=dict)
     error: str | None = None
     out_dir: Path | None = None
+    seconds: float | None = None  # the run's wall time: steps may overlap, so not their sum
 
 
 # --- planning ---------------------------------------------------------------------------------
@@ -216,6 +217,7 @@ def run_variants(variants: Sequence[Variant], scenes: Sequence[Path | None], out
                     row.values = dict(metrics.values) if metrics is not None else {}
                     row.timings = dict(res.timings)
                     row.out_dir = res.out_dir
+                    row.seconds = time.perf_counter() - t0
                 except Exception as exc:  # noqa: BLE001 — one failing variant must not lose the others
                     if isinstance(exc, CrossviewError):
                         row.error = str(exc)
@@ -237,7 +239,8 @@ def run_record(row: RunRow) -> dict[str, Any]:
     for col, path in METRIC_COLUMNS:
         v = lookup(row.values, path)
         rec[col] = float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
-    rec["time_total_s"] = float(sum(row.timings.values())) if row.timings else None
+    total = row.seconds if row.seconds is not None else sum(row.timings.values()) if row.timings else None
+    rec["time_total_s"] = None if total is None else float(total)
     for step, sec in row.timings.items():
         rec[f"time_{step}_s"] = float(sec)
     rec["error"] = row.error or ""

@@ -209,7 +209,7 @@ def _timings_table(timings: dict[str, float], values: dict) -> str:
         f'<td class="barcell"><div class="bar" style="width:{100 * v / total:.1f}%"></div></td></tr>'
         for k, v in t.items())
     return f'<table class="timing"><tr><th>step</th><th>time</th><th></th></tr>{rows}' \
-           f'<tr><td><b>total</b></td><td class="num"><b>{total:.2f} s</b></td><td></td></tr></table>'
+           f'<tr><td><b>sum of steps</b></td><td class="num"><b>{total:.2f} s</b></td><td></td></tr></table>'
 
 
 WIDE_FIGURES = ("top_view.png", "error_histogram.png")

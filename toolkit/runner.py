@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import shutil
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable
@@ -97,31 +98,64 @@ def build(recipe: Recipe, scene: str | Path | None = None, registry: Registry | 
     return Plan(recipe=recipe, scene=scene_obj, stages=tuple(stages))
 
 
-def execute(plan: Plan, obs: Observer | None = None) -> tuple[dict[str, Any], dict[str, float]]:
-    """Run the stages in order; returns outputs by name (``KIND_OUTPUT``) and seconds per step."""
+def _run_step(spec: StepSpec, stage: Stage, results: dict[str, Any], obs: Any) -> tuple[Any, float]:
+    """One step on its inputs from ``results``: (output, seconds); errors name the step."""
+    kwargs = {n: results[n] for n in KIND_INPUTS[spec.name]}
+    kwargs.update({n: results.get(n) for n in KIND_OPTIONAL.get(spec.name, ())})
+    obs.stage_start(spec.name, spec.use)
+    t0 = time.perf_counter()
+    try:
+        out = stage(**kwargs, obs=obs)
+    except CrossviewError as exc:
+        msg = str(exc)
+        raise type(exc)(msg if msg.startswith("steps.") else f"{_step_label(spec)}: {msg}") from exc
+    seconds = time.perf_counter() - t0
+    expected = KIND_OUTPUT_TYPE[spec.name]
+    if not isinstance(out, expected):
+        raise TypeError(f"{spec.use} returned {type(out).__name__}, expected {expected.__name__}")
+    obs.stage_end(spec.name, seconds, out)
+    return out, seconds
+
+
+def execute(plan: Plan, obs: Observer | None = None,
+            overlap: bool | None = None) -> tuple[dict[str, Any], dict[str, float]]:
+    """Run the stages in recipe order; returns outputs by name (``KIND_OUTPUT``) and seconds per step.
+
+    ``overlap`` (default: when the thread budget has two threads, ``toolkit.threads``): a step and
+    the next one run side by side when the next needs nothing from it (``toolkit.overlap``); each
+    step's seconds are then its own, and they add up to more than the run's wall time.
+    """
+    from toolkit.overlap import BufferedObserver, independent
+    from toolkit.threads import thread_budget
+
     obs = obs or NullObserver()
+    overlap = thread_budget() >= 2 if overlap is None else overlap
     results: dict[str, Any] = {"scene": plan.scene}
     timings: dict[str, float] = {}
-    for spec, stage in plan.stages:
-        kwargs = {n: results[n] for n in KIND_INPUTS[spec.name]}
-        kwargs.update({n: results.get(n) for n in KIND_OPTIONAL.get(spec.name, ())})
-        obs.stage_start(spec.name, spec.use)
-        t0 = time.perf_counter()
-        try:
-            # Our BLAS work is tall-skinny ((N,3) @ (3,3)): OpenBLAS threads gain nothing there and, on a
-            # loaded machine, spin-wait (0.27 s vs 0.0098 s measured for one such product under load).
-            with threadpool_limits(1, user_api="blas"):
-                out = stage(**kwargs, obs=obs)
-        except CrossviewError as exc:
-            msg = str(exc)
-            raise type(exc)(msg if msg.startswith("steps.") else f"{_step_label(spec)}: {msg}") from exc
-        seconds = time.perf_counter() - t0
-        expected = KIND_OUTPUT_TYPE[spec.name]
-        if not isinstance(out, expected):
-            raise TypeError(f"{spec.use} returned {type(out).__name__}, expected {expected.__name__}")
-        timings[spec.name] = seconds
-        obs.stage_end(spec.name, seconds, out)
-        results[KIND_OUTPUT[spec.name]] = out
+    kinds = {spec.name for spec, _ in plan.stages}
+    steps = list(plan.stages)
+    # Our BLAS work is tall-skinny ((N,3) @ (3,3)): OpenBLAS threads gain nothing there and, on a
+    # loaded machine, spin-wait (0.27 s vs 0.0098 s measured for one such product under load).
+    with threadpool_limits(1, user_api="blas"), ThreadPoolExecutor(1, "crossview-step") as pool:
+        i = 0
+        while i < len(steps):
+            spec, stage = steps[i]
+            if overlap and i + 1 < len(steps) and independent(spec, steps[i + 1][0], kinds):
+                buffered = BufferedObserver(obs.wants_debug)
+                behind = pool.submit(_run_step, spec, stage, results, buffered)
+                try:
+                    ahead = _run_step(*steps[i + 1], results, obs)
+                finally:
+                    done = behind.result()  # waits; the earlier step's error wins, as in recipe order
+                buffered.replay(obs)
+                pairs = [(spec, done), (steps[i + 1][0], ahead)]
+                i += 2
+            else:
+                pairs = [(spec, _run_step(spec, stage, results, obs))]
+                i += 1
+            for s, (out, seconds) in pairs:
+                results[KIND_OUTPUT[s.name]] = out
+                timings[s.name] = seconds
     return results, timings
 
 
@@ -143,10 +177,11 @@ def _prepare_out(out: Path, overwrite: bool) -> Path:
 def run_recipe(recipe_path: str | Path, scene: str | Path | None = None, out: str | Path | None = None,
                overrides: Iterable[str] = (), observer: Observer | None = None, overwrite: bool = False,
                registry: Registry | None = None, rerun: bool | None = None,
-               recipe: Recipe | None = None) -> RunResult:
+               recipe: Recipe | None = None, overlap: bool | None = None) -> RunResult:
     """Load, build and run a recipe, writing ``out`` (default ``out/<recipe name>``) atomically.
 
     ``rerun=False`` disables the recipe's rerun log (tests, compare/batch use their own observers).
+    ``overlap``: see ``execute`` (False: one step at a time, e.g. to profile each step alone).
     """
     from toolkit.outputs import write_outputs  # matplotlib and friends only when running
 
@@ -166,7 +201,7 @@ def run_recipe(recipe_path: str | Path, scene: str | Path | None = None, out: st
             rerun_obs = RerunObserver(target, max_points=int(recipe.log.get("max_points", 200_000)))
             rerun_obs.log_text("recipe", f"```yaml\n{recipe.to_yaml()}\n```")
             obs = MultiObserver(obs, rerun_obs)
-        results, timings = execute(plan, obs)
+        results, timings = execute(plan, obs, overlap)
         if rerun_obs is not None:
             rerun_obs.close()
             rerun_obs = None

@@ -12,6 +12,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from toolkit.threads import thread_budget
+
 if TYPE_CHECKING:
     from scipy.spatial import cKDTree
 
@@ -24,7 +26,7 @@ PROBE_STEP = 64
 
 
 def nearest_up_to(tree: cKDTree, points: np.ndarray, cutoff_m: float,
-                  workers: int = -1) -> tuple[np.ndarray, np.ndarray]:
+                  workers: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``tree.query(points, k=1, distance_upper_bound=cutoff_m)``: (distances, indices), inf and
     ``tree.n`` where nothing lies within the cutoff.
 
@@ -34,6 +36,7 @@ def nearest_up_to(tree: cKDTree, points: np.ndarray, cutoff_m: float,
     tree's leaf order): it keeps the probe representative and the walks cache-friendly.
     """
     points = np.asarray(points, np.float64)
+    workers = thread_budget() if workers is None else workers
     probe = tree.query(points[::PROBE_STEP], k=1, distance_upper_bound=cutoff_m, workers=workers)[0]
     probe = probe[np.isfinite(probe)]
     first_m = 2.0 * float(np.percentile(probe, 75)) if len(probe) else cutoff_m
@@ -48,7 +51,7 @@ def nearest_up_to(tree: cKDTree, points: np.ndarray, cutoff_m: float,
 
 
 def nearest_within(tree: cKDTree, points: np.ndarray, bound_m: np.ndarray,
-                   split_percentile: float = 90.0, workers: int = -1) -> np.ndarray:
+                   split_percentile: float = 90.0, workers: int | None = None) -> np.ndarray:
     """Index (into ``tree.data``) of each point's nearest neighbour, when every point is known to
     have a neighbour within ``bound_m[k]`` metres (e.g. a distance the same tree already returned).
 
@@ -59,6 +62,7 @@ def nearest_within(tree: cKDTree, points: np.ndarray, bound_m: np.ndarray,
     """
     points = np.asarray(points, np.float64)
     bound_m = np.asarray(bound_m, np.float64)
+    workers = thread_budget() if workers is None else workers
     if len(points) != len(bound_m):
         raise ValueError(f"{len(points)} points but {len(bound_m)} bounds")
     if not np.isfinite(bound_m).all():

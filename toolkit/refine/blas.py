@@ -20,5 +20,7 @@ def single_threaded_blas():
 
 
 def workers_for(n: int) -> int:
-    """cKDTree query workers: threads only pay off for large queries."""
-    return -1 if n >= 200_000 else 1
+    """cKDTree query workers: threads only pay off for large queries (within the thread budget)."""
+    from toolkit.threads import query_workers
+
+    return query_workers(n)

@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from toolkit.threads import thread_budget
+
 
 def decimate_xy(xy: np.ndarray, labels: np.ndarray, cell_m: float) -> tuple[np.ndarray, np.ndarray]:
     """One representative (the first, in input order) per (label, 2D cell): keeps KD-trees small."""
@@ -34,7 +36,7 @@ def nearest_segment(points: np.ndarray, to_xy: np.ndarray, seg_xy: np.ndarray, s
     for s in range(0, len(points), chunk):
         xy = points[s:s + chunk] @ to_xy.T  # whole chunks: the same products as without ``skip``
         rows = np.arange(len(xy)) if skip is None else np.flatnonzero(~skip[s:s + chunk])
-        dist, idx = tree.query(xy[rows], k=1, distance_upper_bound=radius_m, workers=-1)
+        dist, idx = tree.query(xy[rows], k=1, distance_upper_bound=radius_m, workers=thread_budget())
         hit = np.isfinite(dist)
         out[s + rows[hit]] = rep_lab[idx[hit]]
     return out

@@ -12,12 +12,14 @@ growing links, so no (points × k) table is ever held whole.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from toolkit.street.normals import neighbourhood_covariance, symmetric_eigenvalues
+from toolkit.threads import thread_budget
 
 CHUNK = 1 << 16
 
@@ -44,10 +46,10 @@ def facade_points(points: np.ndarray, tree: cKDTree, columns: tuple[np.ndarray, 
     passes = [steep(n, up, angle_deg) for n in normals_per_scale]
     candidates = np.flatnonzero(np.logical_or.reduce(passes)).astype(np.int32)
     kq = min(max(max(scales), knn, graph_k) + 1, len(points))
-    keep_idx, keep_graph, keep_curv = [], [], []
-    for start in range(0, len(candidates), CHUNK):
+
+    def chunk(start: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         cand = candidates[start:start + CHUNK]
-        _, nbrs = tree.query(points[cand], k=kq, workers=-1)
+        _, nbrs = tree.query(points[cand], k=kq)
         nbrs = nbrs.astype(np.int32)
         votes = np.zeros(len(cand), dtype=np.int32)
         for k, ok in zip(scales, passes):
@@ -55,12 +57,21 @@ def facade_points(points: np.ndarray, tree: cKDTree, columns: tuple[np.ndarray, 
             votes += ok[cand] & (share > neighbour_fraction)
         keep = votes >= min_votes
         if not keep.any():
-            continue
+            return None
         lam = symmetric_eigenvalues(neighbourhood_covariance(columns, nbrs[keep, :knn]))
         total = lam.sum(axis=1)
-        keep_curv.append(np.where(total > 0, lam[:, 0] / np.where(total > 0, total, 1.0), 0.0).astype(np.float32))
-        keep_idx.append(cand[keep].astype(np.int32))
-        keep_graph.append(np.ascontiguousarray(nbrs[keep, 1:graph_k + 1]))
+        curv = np.where(total > 0, lam[:, 0] / np.where(total > 0, total, 1.0), 0.0).astype(np.float32)
+        return cand[keep].astype(np.int32), np.ascontiguousarray(nbrs[keep, 1:graph_k + 1]), curv
+
+    # whole chunks (query and the numpy after it) run in threads, joined in chunk order
+    starts = range(0, len(candidates), CHUNK)
+    workers = min(thread_budget(), len(starts))
+    if workers > 1:
+        with ThreadPoolExecutor(workers) as pool:
+            parts = [r for r in pool.map(chunk, starts) if r is not None]
+    else:
+        parts = [r for r in map(chunk, starts) if r is not None]
+    keep_idx, keep_graph, keep_curv = (list(x) for x in zip(*parts)) if parts else ([], [], [])
     if not keep_idx:
         return Facade(np.zeros(0, np.int32), np.zeros((0, graph_k), np.int32), np.zeros(0, np.float32))
     return Facade(np.concatenate(keep_idx), np.concatenate(keep_graph), np.concatenate(keep_curv))

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from toolkit.street.outline import diameters
+from toolkit.threads import thread_budget
 from toolkit.types import StreetSegments
 
 
@@ -92,7 +93,7 @@ def steep_truth(truth_points: np.ndarray, lidar_points: np.ndarray, angle_deg: f
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(lidar_points) - origin))
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn))
     steep = np.abs(np.asarray(pcd.normals)[:, 2]) < np.cos(np.radians(angle_deg))
-    _, idx = cKDTree(np.asarray(pcd.points)).query(np.asarray(truth_points) - origin, k=1, workers=-1)
+    _, idx = cKDTree(np.asarray(pcd.points)).query(np.asarray(truth_points) - origin, k=1, workers=thread_budget())
     return steep[idx]
 
 

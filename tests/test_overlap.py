@@ -1,0 +1,106 @@
+"""Independent neighbouring steps run side by side; results, warnings and errors as in recipe order."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests import fake_stages
+from tests.fake_stages import FAKE_RECIPE, fake_registry
+from toolkit.errors import StageError
+from toolkit.observe import NullObserver
+from toolkit.overlap import BufferedObserver, independent
+from toolkit.recipe import StepSpec, load_recipe
+from toolkit.runner import build, execute
+from toolkit.threads import query_workers, thread_budget
+
+
+def _spec(kind: str) -> StepSpec:
+    return StepSpec(name=kind, use=f"{kind}.x", params={})
+
+
+def test_independent_follows_the_stage_inputs():
+    full = {"overview", "street", "graph", "unary", "match", "refine", "warp", "adjust", "evaluate"}
+    assert independent(_spec("overview"), _spec("street"), full)
+    assert not independent(_spec("street"), _spec("graph"), full)
+    assert not independent(_spec("warp"), _spec("adjust"), full)
+    # evaluate's optional inputs count when the recipe makes them: the adjusted cameras
+    assert not independent(_spec("adjust"), _spec("evaluate"), full)
+    assert not independent(_spec("warp"), _spec("evaluate"), full - {"adjust"})
+
+
+def test_buffered_observer_replays_in_order():
+    real = NullObserver()
+    buf = BufferedObserver(wants_debug=False)
+    buf.stage_start("overview", "overview.x")
+    buf.debug("dropped", 1.0)
+    buf.warn("first")
+    assert list(buf.progress([1, 2])) == [1, 2]
+    buf.stage_end("overview", 0.5, None)
+    assert real.warnings == [] and real.timings == {}
+    buf.replay(real)
+    assert real.warnings == ["overview: first"] and real.timings == {"overview": 0.5}
+    assert buf.calls == []
+
+
+@pytest.fixture
+def plan(tmp_path: Path, mini_scene: Path):
+    p = tmp_path / "fake.yaml"
+    p.write_text(FAKE_RECIPE)
+    return lambda reg=None: build(load_recipe(p), scene=mini_scene, registry=reg or fake_registry())
+
+
+def test_overlap_gives_the_same_results_and_warnings(plan, monkeypatch):
+    real = fake_stages.FakeOverview.__call__
+
+    def warning_overview(self, scene, obs):
+        obs.warn("from overview")
+        return real(self, scene, obs)
+
+    monkeypatch.setattr(fake_stages.FakeOverview, "__call__", warning_overview)
+    runs = {}
+    for overlap in (False, True):
+        obs = NullObserver()
+        results, timings = execute(plan(), obs, overlap=overlap)
+        runs[overlap] = (results, list(timings), obs.warnings)
+    (r0, t0, w0), (r1, t1, w1) = runs[False], runs[True]
+    assert list(r0) == list(r1) and t0 == t1 == ["overview", "street", "graph", "unary", "match", "refine", "warp"]
+    assert w0 == w1 == ["overview: from overview"]
+    np.testing.assert_array_equal(r0["overview"].label_image, r1["overview"].label_image)
+    np.testing.assert_array_equal(r0["registration"].points, r1["registration"].points)
+
+
+def test_independent_steps_really_run_side_by_side(plan, monkeypatch):
+    # each of the two steps waits for the other at a barrier: run one after the other, both time out
+    barrier = threading.Barrier(2, timeout=20)
+    for cls in (fake_stages.FakeOverview, fake_stages.FakeStreet):
+        real = cls.__call__
+
+        def meet(self, scene, obs, _real=real):
+            barrier.wait()
+            return _real(self, scene, obs)
+
+        monkeypatch.setattr(cls, "__call__", meet)
+    results, _ = execute(plan(), NullObserver(), overlap=True)
+    assert results["street"].point_labels.size > 0
+
+
+def test_the_earlier_steps_error_wins(plan, monkeypatch):
+    def broken_overview(self, scene, obs):
+        raise StageError("DSM is all nodata")
+
+    monkeypatch.setattr(fake_stages.FakeOverview, "__call__", broken_overview)
+    for overlap in (False, True):
+        with pytest.raises(StageError, match=r"^steps.overview \(overview.fake\): DSM is all nodata$"):
+            execute(plan(), NullObserver(), overlap=overlap)
+
+
+def test_thread_budget_honours_omp_num_threads(monkeypatch):
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert thread_budget() == 1 and query_workers(10_000_000) == 1
+    monkeypatch.delenv("OMP_NUM_THREADS")
+    assert thread_budget() >= 1
+    assert query_workers(10) == 1

@@ -1,0 +1,29 @@
+"""How many threads a run may use: the CPUs this process may run on, capped by ``OMP_NUM_THREADS``.
+
+``crossview batch`` runs one scene per dask worker process and dask starts its workers with
+``OMP_NUM_THREADS=1`` (Open3D and BLAS honour it): a stage that spread its work over every core
+there would fight the other workers' scenes for the same cores. So every threaded step of ours
+(KD-tree query workers, thread pools, the runner's overlap of independent stages) asks here
+instead of using ``workers=-1`` / ``os.cpu_count()``. Results never depend on the answer.
+"""
+
+from __future__ import annotations
+
+import os
+
+
+def thread_budget() -> int:
+    """Threads this process should use (≥ 1)."""
+    try:
+        n = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        n = os.cpu_count() or 1
+    cap = os.environ.get("OMP_NUM_THREADS", "").strip()
+    if cap.isdigit() and int(cap) >= 1:
+        n = min(n, int(cap))
+    return max(n, 1)
+
+
+def query_workers(n_queries: int, min_queries: int = 200_000) -> int:
+    """cKDTree ``workers`` for ``n_queries`` points: threads only pay off for large queries."""
+    return thread_budget() if n_queries >= min_queries else 1
