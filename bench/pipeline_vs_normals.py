@@ -27,9 +27,8 @@ from pathlib import Path
 from _common import REPO, normals_pass_seconds, run_pipeline, scene
 from toolkit.io.cloud import read_points
 
-def cpu():
-    r = resource.getrusage(resource.RUSAGE_SELF)
-    return r.ru_utime + r.ru_stime
+def cpu():  # children too: the adjust step's Ceres solve runs in a child process
+    return sum(r.ru_utime + r.ru_stime for r in map(resource.getrusage, (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)))
 
 def normals_cpu(points):
     c0 = cpu()

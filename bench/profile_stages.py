@@ -31,8 +31,9 @@ def _status_mb(field: str) -> float:
 
 
 def _cpu() -> float:
-    r = resource.getrusage(resource.RUSAGE_SELF)
-    return r.ru_utime + r.ru_stime
+    """User + system seconds of this process and its finished children (the adjust step's Ceres
+    solve runs in a child process, ``toolkit.adjust.isolate``)."""
+    return sum(r.ru_utime + r.ru_stime for r in map(resource.getrusage, (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)))
 
 
 def _reset_peak() -> None:

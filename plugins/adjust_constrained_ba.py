@@ -22,6 +22,7 @@ import numpy as np
 from pydantic import Field
 
 from toolkit.adjust.ba import BAParams, adjust_ceres, adjust_scipy, degenerate_centres
+from toolkit.adjust.isolate import isolates, run_isolated
 from toolkit.adjust.model import registered_poses, residuals, rms_px, warp_points3d
 from toolkit.io.colmap import replace_poses
 from toolkit.refine.blas import single_threaded_blas
@@ -57,6 +58,14 @@ class ConstrainedBA(Stage):
     def scene_needs(cls, params) -> tuple[str, ...]:
         return ("sparse",)
 
+    def holds_gil(self) -> bool:
+        return self.params.backend == "ceres" and not self._isolated()
+
+    def _isolated(self) -> bool:
+        # pycolmap keeps the GIL through the whole Ceres solve: in a child process it leaves this
+        # one free (toolkit.adjust.isolate); with more Ceres threads it uses the cores itself
+        return self.params.threads == 1 and isolates()
+
     def __call__(self, registration: Registration, scene: Scene, obs) -> AdjustedCameras:
         with single_threaded_blas():
             return self._run(registration, scene, obs)
@@ -79,7 +88,11 @@ class ConstrainedBA(Stage):
             obs.warn("camera centres are exactly collinear/coplanar (pycolmap's prior alignment would "
                      "drop the priors): using the scipy solver")
             backend = "scipy"
-        solve = adjust_ceres if backend == "ceres" else adjust_scipy
+        solver = adjust_ceres if backend == "ceres" else adjust_scipy
+
+        def solve(*args):
+            return run_isolated(solver, *args) if solver is adjust_ceres and self._isolated() else solver(*args)
+
         res = solve(model, R_w, t_w, X_w, C_prior, bp)
         iterations = res.iterations
         X = _place_unadjusted(model, res)

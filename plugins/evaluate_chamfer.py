@@ -45,6 +45,7 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import nullcontext
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -72,6 +73,16 @@ SCHEMA = "crossview.metrics/1"
 REFERENCE_KEYS = ("truth_lidar", "overview_cloud")
 
 
+@dataclass(frozen=True)
+class PointMetrics:
+    """What needs only the registered points: metrics.json's street, reference and chamfer entries,
+    the notes made on the way, and the (3D, horizontal) errors vs truth (None: no truth points)."""
+
+    values: dict[str, Any]
+    notes: list[str]
+    errors: tuple[np.ndarray, np.ndarray] | None
+
+
 class Chamfer(Stage):
     """The paper's metric (mutual-NN Chamfer, 3D and 2D) plus errors against the truth when present."""
 
@@ -92,15 +103,31 @@ class Chamfer(Stage):
     def scene_needs(cls, params: StageParams) -> tuple[str, ...]:
         return (params.reference,) if params.reference in REFERENCE_KEYS else ()
 
+    def prefetch(self, registration: Registration, scene: Scene) -> PointMetrics:
+        """The Chamfer metrics and per-point errors, which need only the registered points: the
+        runner computes them beside the adjust step, whose cameras only the camera errors need."""
+        return self._point_metrics(registration, scene)
+
     def __call__(self, registration: Registration, scene: Scene, obs: Any,
                  cameras: AdjustedCameras | None = None, matches: Matches | None = None,
                  street: StreetSegments | None = None, overview: OverviewSegments | None = None,
-                 transforms: SegmentTransforms | None = None) -> Metrics:
+                 transforms: SegmentTransforms | None = None, prefetched: PointMetrics | None = None) -> Metrics:
+        point = prefetched if prefetched is not None else self._point_metrics(registration, scene)
+        values: dict[str, Any] = {"schema": SCHEMA, "cutoff_m": self.params.cutoff_m, **point.values}
+        notes = list(point.notes)
+        per_point, truth_values, seg_scores = self._truth(scene, registration, cameras, matches, street,
+                                                          overview, notes, point.errors)
+        values.update({"truth": None, "matching": None, "cameras": None, **truth_values})
+        values["segments"] = _segments_table(street, matches, transforms, overview, per_point, seg_scores)
+        values["notes"] = notes
+        return Metrics(values=values, per_point_error_m=per_point)
+
+    # --- pieces -------------------------------------------------------------------------------
+    def _point_metrics(self, registration: Registration, scene: Scene) -> PointMetrics:
         p = self.params
         notes: list[str] = []
         pts = np.asarray(registration.points, np.float64)
-        values: dict[str, Any] = {"schema": SCHEMA, "cutoff_m": p.cutoff_m}
-
+        values: dict[str, Any] = {}
         ref_source, ref_path = self._reference(scene, notes)
         street_idx = M.subsample(pts, p.max_points, p.seed)
         values["street"] = {"n_points": len(pts), "n_used": len(street_idx)}
@@ -114,20 +141,15 @@ class Chamfer(Stage):
                                    "n_used": len(ref_idx)}
             pair = (pts[street_idx], ref[ref_idx])
         dims = ("3d", "2d") if pair is not None else ()
-        # with two threads the 3D and 2D metrics run beside the truth scoring (independent
+        # with two threads the 3D and 2D metrics run beside the per-point errors (independent
         # computations: the same values either way)
         with ThreadPoolExecutor(2) if dims and thread_budget() >= 2 else nullcontext() as pool:
             pending = {d: pool.submit(self._chamfer, *pair, d) for d in dims} if pool is not None else {}
-            per_point, truth_values, seg_scores = self._truth(scene, registration, cameras, matches, street,
-                                                              overview, notes)
+            errors = _truth_errors(registration, scene)
             chamfer = {d: pending[d].result() if pending else self._chamfer(*pair, d) for d in dims}
         values["chamfer"] = chamfer if pair is not None else None
-        values.update({"truth": None, "matching": None, "cameras": None, **truth_values})
-        values["segments"] = _segments_table(street, matches, transforms, overview, per_point, seg_scores)
-        values["notes"] = notes
-        return Metrics(values=values, per_point_error_m=per_point)
+        return PointMetrics(values, notes, errors)
 
-    # --- pieces -------------------------------------------------------------------------------
     def _chamfer(self, a: np.ndarray, b: np.ndarray, dims: str) -> dict[str, Any]:
         p = self.params
         cols = slice(None) if dims == "3d" else slice(0, 2)
@@ -152,19 +174,15 @@ class Chamfer(Stage):
             raise SceneError(f"{ref}: reference cloud for evaluate.chamfer not found")
         return ref, path.resolve()
 
-    def _truth(self, scene, registration, cameras, matches, street, overview, notes):
+    def _truth(self, scene, registration, cameras, matches, street, overview, notes, errors):
         """Per-point errors, segment-match scores and camera-centre errors (when truth exists)."""
         if not any(scene.has(k) for k in ("truth_street_points", "truth_street_labels", "truth_cameras")):
             notes.append("scene has no truth: per-point, segment-match and camera errors skipped")
             return None, {}, None
         out: dict[str, Any] = {"truth": None, "matching": None, "cameras": None}
         per_point = None
-        if scene.has("truth_street_points"):
-            true_pts = load_array(scene, "truth_street_points")
-            if true_pts.shape != registration.points.shape:
-                raise SceneError(f"{scene.files.truth_street_points}: shape {true_pts.shape} does not match "
-                                 f"the {registration.points.shape} registered street points")
-            e3, eh = M.point_errors(registration.points, true_pts)
+        if errors is not None:
+            e3, eh = errors
             per_point = e3
             out["truth"] = M.point_error_summary(e3, eh)
             edges = np.append(np.arange(0.0, self.params.cutoff_m + 1e-9, self.params.hist_bin_m), np.inf)
@@ -202,6 +220,17 @@ class Chamfer(Stage):
         else:
             notes.append("no truth.cameras: camera-centre error skipped")
         return per_point, out, seg_scores
+
+
+def _truth_errors(registration: Registration, scene: Scene) -> tuple[np.ndarray, np.ndarray] | None:
+    """(3D, horizontal) error of every registered point vs truth/street_points.npy (None: no truth)."""
+    if not scene.has("truth_street_points"):
+        return None
+    true_pts = load_array(scene, "truth_street_points")
+    if true_pts.shape != registration.points.shape:
+        raise SceneError(f"{scene.files.truth_street_points}: shape {true_pts.shape} does not match "
+                         f"the {registration.points.shape} registered street points")
+    return M.point_errors(registration.points, true_pts)
 
 
 def _read_reference(scene: Scene, source: str | None, path: Path) -> np.ndarray:

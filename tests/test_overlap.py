@@ -15,7 +15,8 @@ from toolkit.observe import NullObserver
 from toolkit.overlap import BufferedObserver, independent
 from toolkit.recipe import StepSpec, load_recipe
 from toolkit.runner import build, execute
-from toolkit.threads import query_workers, thread_budget
+from toolkit.stage import Stage
+from toolkit.threads import query_workers, thread_budget, thread_cap
 
 
 def _spec(kind: str) -> StepSpec:
@@ -104,3 +105,101 @@ def test_thread_budget_honours_omp_num_threads(monkeypatch):
     monkeypatch.delenv("OMP_NUM_THREADS")
     assert thread_budget() >= 1
     assert query_workers(10) == 1
+
+
+def test_thread_cap_lowers_the_budget_inside_the_block(monkeypatch):
+    monkeypatch.setenv("OMP_NUM_THREADS", "8")
+    outside = thread_budget()
+    with thread_cap(1):
+        assert thread_budget() == 1
+    assert thread_budget() == outside
+
+
+# --- prefetch: evaluate's point metrics beside the adjust step -------------------------------
+FULL_RECIPE = FAKE_RECIPE + """  adjust: {use: adjust.fake}
+  evaluate: {use: evaluate.chamfer}
+"""
+
+
+class FakeAdjust(Stage):
+    """The scene's COLMAP model as it is."""
+    kind, name = "adjust", "fake"
+
+    def __call__(self, registration, scene, obs):
+        from toolkit.scene import load_sparse
+        from toolkit.types import AdjustedCameras
+
+        return AdjustedCameras(load_sparse(scene), 0.0, 0.0, 0)
+
+
+@pytest.fixture
+def full_plan(tmp_path: Path, mini_scene: Path):
+    from plugins.evaluate_chamfer import Chamfer
+
+    p = tmp_path / "full.yaml"
+    p.write_text(FULL_RECIPE)
+    reg = fake_registry()
+    reg.add(FakeAdjust)
+    reg.add(Chamfer)
+    return build(load_recipe(p), scene=mini_scene, registry=reg)
+
+
+def _metrics_json(results) -> str:
+    import json
+
+    return json.dumps(results["metrics"].values, sort_keys=True, default=str)
+
+
+def test_prefetch_gives_the_same_metrics(full_plan, monkeypatch):
+    from plugins.evaluate_chamfer import Chamfer
+
+    calls = []
+    real = Chamfer.prefetch
+
+    def recording(self, **inputs):
+        calls.append(threading.current_thread().name)
+        return real(self, **inputs)
+
+    monkeypatch.setattr(Chamfer, "prefetch", recording)
+    alone, _ = execute(full_plan, NullObserver(), overlap=False)
+    assert calls == []
+    beside, _ = execute(full_plan, NullObserver(), overlap=True)
+    assert len(calls) == 1 and calls[0] != threading.main_thread().name
+    assert _metrics_json(alone) == _metrics_json(beside)
+
+
+def test_prefetch_runs_beside_the_step_before(full_plan, monkeypatch):
+    from plugins.evaluate_chamfer import Chamfer
+
+    barrier = threading.Barrier(2, timeout=20)  # one after the other, both would time out
+    for cls, name in ((FakeAdjust, "__call__"), (Chamfer, "prefetch")):
+        real = getattr(cls, name)
+
+        def meet(self, *args, _real=real, **kwargs):
+            barrier.wait()
+            return _real(self, *args, **kwargs)
+
+        monkeypatch.setattr(cls, name, meet)
+    results, _ = execute(full_plan, NullObserver(), overlap=True)
+    assert results["metrics"].values["street"]["n_points"] > 0
+
+
+def test_no_prefetch_beside_a_step_that_holds_the_gil(full_plan, monkeypatch):
+    from plugins.evaluate_chamfer import Chamfer
+
+    monkeypatch.setattr(FakeAdjust, "holds_gil", lambda self: True)
+    monkeypatch.setattr(Chamfer, "prefetch", lambda self, **kw: pytest.fail("prefetch beside a GIL holder"))
+    results, _ = execute(full_plan, NullObserver(), overlap=True)
+    assert results["metrics"] is not None
+
+
+def test_a_prefetch_error_is_the_evaluate_steps_error(full_plan, monkeypatch):
+    from plugins.evaluate_chamfer import Chamfer
+    from toolkit.errors import SceneError
+
+    def broken(self, **inputs):
+        raise SceneError("truth/street_points.npy: shape (3, 3) does not match")
+
+    monkeypatch.setattr(Chamfer, "prefetch", broken)
+    with pytest.raises(SceneError, match=r"^steps.evaluate \(evaluate.chamfer\): truth/street_points.npy"):
+        execute(full_plan, NullObserver(), overlap=True)

@@ -5,6 +5,11 @@ In the paper's pipeline the over-view and street steps are independent: the over
 street step runs in the caller's. Stages share no state and take no randomness from globals, so
 the outputs are the same bytes as when the steps run one after the other.
 
+A step that needs the one before only as an optional input starts early with its stage's
+``prefetch``, the part that needs only its required inputs: the evaluation's Chamfer metrics and
+per-point errors run beside the bundle adjustment (whose Ceres solve runs in a child process,
+``toolkit.adjust.isolate``), and only the camera errors wait for the adjusted poses.
+
 The background step talks to a ``BufferedObserver``: its events (start, debug values, warnings,
 end) are replayed to the run's observer once both steps are done, so no observer is ever called
 from two threads and the order of warnings does not depend on which step finished first. Its
@@ -17,7 +22,7 @@ from dataclasses import dataclass, field
 from typing import Any, Iterable, Iterator, TypeVar
 
 from toolkit.recipe import StepSpec
-from toolkit.stage import KIND_INPUTS, KIND_OPTIONAL, KIND_OUTPUT
+from toolkit.stage import KIND_INPUTS, KIND_OPTIONAL, KIND_OUTPUT, Stage
 
 T = TypeVar("T")
 
@@ -49,6 +54,15 @@ class BufferedObserver:
         for name, args, kwargs in self.calls:
             getattr(obs, name)(*args, **kwargs)
         self.calls.clear()
+
+
+def prefetches(first: tuple[StepSpec, Stage], second: tuple[StepSpec, Stage]) -> bool:
+    """True when ``second``'s stage has a ``prefetch``, needs what ``first`` makes, if at all,
+    only as an optional input, and ``first`` does not hold the GIL: the prefetch may then run
+    beside ``first``."""
+    (first_spec, first_stage), (spec, stage) = first, second
+    return (type(stage).prefetch is not Stage.prefetch and not first_stage.holds_gil()
+            and KIND_OUTPUT[first_spec.name] not in KIND_INPUTS[spec.name])
 
 
 def independent(first: StepSpec, second: StepSpec, recipe_kinds: set[str]) -> bool:

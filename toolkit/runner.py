@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 import shutil
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable
@@ -98,13 +98,18 @@ def build(recipe: Recipe, scene: str | Path | None = None, registry: Registry | 
     return Plan(recipe=recipe, scene=scene_obj, stages=tuple(stages))
 
 
-def _run_step(spec: StepSpec, stage: Stage, results: dict[str, Any], obs: Any) -> tuple[Any, float]:
-    """One step on its inputs from ``results``: (output, seconds); errors name the step."""
+def _run_step(spec: StepSpec, stage: Stage, results: dict[str, Any], obs: Any,
+              prefetched: Future | None = None) -> tuple[Any, float]:
+    """One step on its inputs from ``results``: (output, seconds); errors name the step.
+    ``prefetched``: the stage's ``prefetch``, started beside the step before (an error in it is
+    this step's error)."""
     kwargs = {n: results[n] for n in KIND_INPUTS[spec.name]}
     kwargs.update({n: results.get(n) for n in KIND_OPTIONAL.get(spec.name, ())})
     obs.stage_start(spec.name, spec.use)
     t0 = time.perf_counter()
     try:
+        if prefetched is not None:
+            kwargs["prefetched"] = prefetched.result()
         out = stage(**kwargs, obs=obs)
     except CrossviewError as exc:
         msg = str(exc)
@@ -117,15 +122,24 @@ def _run_step(spec: StepSpec, stage: Stage, results: dict[str, Any], obs: Any) -
     return out, seconds
 
 
+def _prefetch(stage: Stage, inputs: dict[str, Any]) -> Any:
+    """``stage.prefetch`` beside a step that keeps a core busy: with the threads left over."""
+    from toolkit.threads import thread_budget, thread_cap
+
+    with thread_cap(thread_budget() - 1):
+        return stage.prefetch(**inputs)
+
+
 def execute(plan: Plan, obs: Observer | None = None,
             overlap: bool | None = None) -> tuple[dict[str, Any], dict[str, float]]:
     """Run the stages in recipe order; returns outputs by name (``KIND_OUTPUT``) and seconds per step.
 
     ``overlap`` (default: when the thread budget has two threads, ``toolkit.threads``): a step and
-    the next one run side by side when the next needs nothing from it (``toolkit.overlap``); each
-    step's seconds are then its own, and they add up to more than the run's wall time.
+    the next one run side by side when the next needs nothing from it, and the next one's
+    ``prefetch`` runs beside it when it needs it only as an optional input (``toolkit.overlap``);
+    step seconds then add up to more than the run's wall time.
     """
-    from toolkit.overlap import BufferedObserver, independent
+    from toolkit.overlap import BufferedObserver, independent, prefetches
     from toolkit.threads import thread_budget
 
     obs = obs or NullObserver()
@@ -149,6 +163,13 @@ def execute(plan: Plan, obs: Observer | None = None,
                     done = behind.result()  # waits; the earlier step's error wins, as in recipe order
                 buffered.replay(obs)
                 pairs = [(spec, done), (steps[i + 1][0], ahead)]
+                i += 2
+            elif overlap and i + 1 < len(steps) and prefetches(steps[i], steps[i + 1]):
+                nspec, nstage = steps[i + 1]
+                early = pool.submit(_prefetch, nstage, {n: results[n] for n in KIND_INPUTS[nspec.name]})
+                done = _run_step(spec, stage, results, obs)  # on error the pool still waits for ``early``
+                results[KIND_OUTPUT[spec.name]] = done[0]
+                pairs = [(spec, done), (nspec, _run_step(nspec, nstage, results, obs, early))]
                 i += 2
             else:
                 pairs = [(spec, _run_step(spec, stage, results, obs))]

@@ -85,6 +85,20 @@ class Stage:
         """Scene file keys (``SceneFiles`` fields) this stage reads. ``"a|b"`` means either one."""
         return ()
 
+    def holds_gil(self) -> bool:
+        """True when the step keeps Python's GIL for most of its run (a C++ solver that does not
+        release it): the runner then starts no ``prefetch`` beside it, as that would only wait."""
+        return False
+
+    def prefetch(self, **inputs: Any) -> Any:
+        """Work that needs only the step's required inputs (``KIND_INPUTS``); None: nothing to do.
+
+        When the step before makes only an optional input of this one (evaluate takes the adjusted
+        cameras), the runner calls this beside that step and passes the result to ``__call__`` as
+        ``prefetched=`` (a stage that overrides it takes that keyword). It gets no observer.
+        """
+        return None
+
     def __repr__(self) -> str:
         return f"{self.key()}({self.params!r})"
 

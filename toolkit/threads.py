@@ -10,10 +10,34 @@ instead of using ``workers=-1`` / ``os.cpu_count()``. Results never depend on th
 from __future__ import annotations
 
 import os
+from contextlib import contextmanager
+from contextvars import ContextVar
+from typing import Iterator
+
+_cap: ContextVar[int | None] = ContextVar("crossview_thread_cap", default=None)
+
+
+@contextmanager
+def thread_cap(n: int) -> Iterator[None]:
+    """Within this block (this thread and code it calls, not threads it starts without copying
+    the context), ``thread_budget()`` is at most ``n``: e.g. work run beside a step that keeps
+    one core busy gets the rest."""
+    token = _cap.set(max(1, n))
+    try:
+        yield
+    finally:
+        _cap.reset(token)
 
 
 def thread_budget() -> int:
     """Threads this process should use (≥ 1)."""
+    cap = _cap.get()
+    if cap is not None:
+        return min(cap, _process_budget())
+    return _process_budget()
+
+
+def _process_budget() -> int:
     try:
         n = len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux
