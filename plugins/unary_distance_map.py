@@ -47,7 +47,7 @@ from pydantic import Field
 from toolkit.errors import StageError
 from toolkit.matching import anchors as AN
 from toolkit.matching import chamfer as CH
-from toolkit.matching.atlas import build_atlas
+from toolkit.matching.atlas import CropAtlas, build_atlas
 from toolkit.observe import DebugPoints2D, DebugText
 from toolkit.stage import Stage, StageParams
 from toolkit.threads import thread_budget
@@ -173,8 +173,36 @@ class DistanceMap(Stage):
     def scene_needs(cls, params: StageParams) -> tuple[str, ...]:
         return ()  # street/gps.csv is optional: checked with scene.has("gps")
 
+    def prefetch_inputs(self) -> tuple[str, ...]:
+        return ("overview", "scene")
+
+    def prefetch(self, overview: OverviewSegments, scene: Scene) -> CropAtlas:
+        """The distance atlas: it needs only the over-view, so the runner builds it while the
+        street step runs."""
+        return self._atlas(overview, self._uses_probes(scene))
+
+    def _levels(self) -> tuple[list[int], list[tuple[float, int, int]]]:
+        """Coarse offset steps (px) and the search levels (rotation step, offset step, erosion)."""
+        p = self.params
+        steps = _halvings(p.coarse_offset_step_px)
+        rot = np.deg2rad(p.rotation_step_deg)
+        if p.search == "window":
+            return steps, [(rot / 2 ** i, s, s // 2) for i, s in enumerate(steps)]
+        # anchored hypotheses are within an anchor spacing of the optimum: two local levels
+        return steps, [(rot, 0, 1), (np.deg2rad(1.0), 2, 1), (np.deg2rad(0.5), 1, 0)]
+
+    def _atlas(self, overview: OverviewSegments, with_inside: bool) -> CropAtlas:
+        p = self.params
+        steps, levels = self._levels()
+        reach = int(np.ceil(p.offset_cap_m / overview.grid.gsd_m)) + steps[0] + 4
+        return build_atlas(overview.label_image, overview.boundary_px, p.truncate_px, reach,
+                           erosions=tuple(sorted({lv[2] for lv in levels} | {0, steps[0] // 2})),
+                           n_bins=p.orientation_bins if p.directional else 1,
+                           orientation_weight_px_per_rad=p.orientation_weight_px_per_rad,
+                           with_inside=with_inside)
+
     def __call__(self, graphs: ConjugateGraphs, street: StreetSegments, overview: OverviewSegments,
-                 scene: Scene, obs) -> DataCosts:
+                 scene: Scene, obs, prefetched: CropAtlas | None = None) -> DataCosts:
         p = self.params
         E, L = graphs.n_nodes, graphs.n_labels
         cost = np.full((E, L), np.inf)
@@ -258,19 +286,8 @@ class DistanceMap(Stage):
         walls = AN.segment_walls(fine)
         probes = self._probes(scene, street, walls, coarse, s_cent, edges, stats)
 
-        cap_px = p.offset_cap_m / gsd
-        steps = _halvings(p.coarse_offset_step_px)
-        rot = np.deg2rad(p.rotation_step_deg)
-        if p.search == "window":
-            levels = [(rot / 2 ** i, s, s // 2) for i, s in enumerate(steps)]
-        else:  # anchored hypotheses are within an anchor spacing of the optimum: two local levels
-            levels = [(rot, 0, 1), (np.deg2rad(1.0), 2, 1), (np.deg2rad(0.5), 1, 0)]
-        reach = int(np.ceil(cap_px)) + steps[0] + 4
-        atlas = build_atlas(overview.label_image, overview.boundary_px, p.truncate_px, reach,
-                            erosions=tuple(sorted({lv[2] for lv in levels} | {0, steps[0] // 2})),
-                            n_bins=p.orientation_bins if p.directional else 1,
-                            orientation_weight_px_per_rad=p.orientation_weight_px_per_rad,
-                            with_inside=probes is not None)
+        steps, levels = self._levels()
+        atlas = prefetched if prefetched is not None else self._atlas(overview, probes is not None)
 
         def score(erosion, pts, pairs_, d_theta, d_off):
             return CH.search(atlas, erosion, A, pts, pairs_, d_theta, d_off, p.max_elements,
@@ -462,11 +479,14 @@ class DistanceMap(Stage):
             turn.append(np.abs(_wrap(theta - prior.angle[seg])))
         return np.stack(dist, axis=1), np.stack(turn, axis=1)
 
+    def _uses_probes(self, scene) -> bool:
+        return self.params.free_space_weight > 0 and scene is not None and scene.has("sparse")
+
     def _probes(self, scene, street: StreetSegments, walls, coarse, s_cent, edges, stats):
         """Free-space probes: each segment's coarse points moved probe_offset_m towards the side
         its cameras saw it from (needs street/sparse); None when unused."""
         p = self.params
-        if p.free_space_weight <= 0 or scene is None or not scene.has("sparse"):
+        if not self._uses_probes(scene):
             return None
         from toolkit.scene import load_sparse
 

@@ -203,3 +203,32 @@ def test_a_prefetch_error_is_the_evaluate_steps_error(full_plan, monkeypatch):
     monkeypatch.setattr(Chamfer, "prefetch", broken)
     with pytest.raises(SceneError, match=r"^steps.evaluate \(evaluate.chamfer\): truth/street_points.npy"):
         execute(full_plan, NullObserver(), overlap=True)
+
+
+def test_a_prefetch_starts_after_the_background_step_while_the_next_one_runs(plan, monkeypatch):
+    # unary's prefetch needs only the over-view: it runs after the background over-view step,
+    # while the street step still runs (the barrier: street waits for the prefetch to start)
+    barrier = threading.Barrier(2, timeout=20)
+    got = {}
+    real_street = fake_stages.FakeStreet.__call__
+
+    def street(self, scene, obs):
+        barrier.wait()
+        return real_street(self, scene, obs)
+
+    def prefetch(self, overview, scene):
+        barrier.wait()
+        return overview.ids.copy()
+
+    real_unary = fake_stages.FakeUnary.__call__
+
+    def unary(self, *args, prefetched=None, **kwargs):
+        got["prefetched"] = prefetched
+        return real_unary(self, *args, **kwargs)
+
+    monkeypatch.setattr(fake_stages.FakeStreet, "__call__", street)
+    monkeypatch.setattr(fake_stages.FakeUnary, "prefetch_inputs", lambda self: ("overview", "scene"))
+    monkeypatch.setattr(fake_stages.FakeUnary, "prefetch", prefetch)
+    monkeypatch.setattr(fake_stages.FakeUnary, "__call__", unary)
+    results, _ = execute(plan(), NullObserver(), overlap=True)
+    np.testing.assert_array_equal(got["prefetched"], results["overview"].ids)

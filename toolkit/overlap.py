@@ -5,10 +5,11 @@ In the paper's pipeline the over-view and street steps are independent: the over
 street step runs in the caller's. Stages share no state and take no randomness from globals, so
 the outputs are the same bytes as when the steps run one after the other.
 
-A step that needs the one before only as an optional input starts early with its stage's
-``prefetch``, the part that needs only its required inputs: the evaluation's Chamfer metrics and
-per-point errors run beside the bundle adjustment (whose Ceres solve runs in a child process,
-``toolkit.adjust.isolate``), and only the camera errors wait for the adjusted poses.
+A stage can also start early with its ``prefetch``, the part of its work that needs only some
+of its inputs (``prefetch_inputs``), as soon as those are made (``Prefetcher``): the unary
+step's distance atlas (over-view only) is built while the street step runs, and the evaluation's
+Chamfer metrics and per-point errors run beside the bundle adjustment (whose Ceres solve runs in
+a child process, ``toolkit.adjust.isolate``), so only the camera errors wait for its poses.
 
 The background step talks to a ``BufferedObserver``: its events (start, debug values, warnings,
 end) are replayed to the run's observer once both steps are done, so no observer is ever called
@@ -18,11 +19,13 @@ progress bars are not shown (the step in the caller's thread keeps its own).
 
 from __future__ import annotations
 
+from concurrent.futures import Executor, Future
 from dataclasses import dataclass, field
 from typing import Any, Iterable, Iterator, TypeVar
 
 from toolkit.recipe import StepSpec
 from toolkit.stage import KIND_INPUTS, KIND_OPTIONAL, KIND_OUTPUT, Stage
+from toolkit.threads import thread_budget, thread_cap
 
 T = TypeVar("T")
 
@@ -56,13 +59,47 @@ class BufferedObserver:
         self.calls.clear()
 
 
-def prefetches(first: tuple[StepSpec, Stage], second: tuple[StepSpec, Stage]) -> bool:
-    """True when ``second``'s stage has a ``prefetch``, needs what ``first`` makes, if at all,
-    only as an optional input, and ``first`` does not hold the GIL: the prefetch may then run
-    beside ``first``."""
-    (first_spec, first_stage), (spec, stage) = first, second
-    return (type(stage).prefetch is not Stage.prefetch and not first_stage.holds_gil()
-            and KIND_OUTPUT[first_spec.name] not in KIND_INPUTS[spec.name])
+class Prefetcher:
+    """Starts each later step's ``prefetch`` as soon as the inputs it names (``prefetch_inputs``)
+    are made: in the background thread right after a background step (the unary step's distance
+    atlas needs only the over-view, so it is built while the street step still runs), else in the
+    pool beside the step that runs next, unless that step holds the GIL or is the step itself."""
+
+    def __init__(self, steps: list[tuple[StepSpec, Stage]], pool: Executor) -> None:
+        self.steps, self.pool = steps, pool
+        self.started: dict[str, Future] = {}
+
+    def _due(self, results: dict[str, Any], after: int) -> list[tuple[StepSpec, Stage]]:
+        return [(spec, stage) for spec, stage in self.steps[after + 1:]
+                if spec.name not in self.started and type(stage).prefetch is not Stage.prefetch
+                and all(n in results for n in stage.prefetch_inputs())]
+
+    def start_beside(self, results: dict[str, Any], after: int) -> None:
+        """Prefetches the outputs up to step ``after`` allow, in the pool, beside step ``after + 1``."""
+        if after + 1 >= len(self.steps) or self.steps[after + 1][1].holds_gil():
+            return
+        for spec, stage in self._due(results, after):
+            if spec.name != self.steps[after + 1][0].name:  # the step itself simply runs
+                self.started[spec.name] = self.pool.submit(run_prefetch, stage, results)
+
+    def run_here(self, results: dict[str, Any], after: int) -> None:
+        """Prefetches the outputs up to step ``after`` allow, in this (background) thread."""
+        for spec, stage in self._due(results, after):
+            job: Future = Future()
+            try:
+                job.set_result(run_prefetch(stage, results))
+            except BaseException as exc:  # raised when the step runs: it is that step's error
+                job.set_exception(exc)
+            self.started[spec.name] = job
+
+    def take(self, name: str) -> Future | None:
+        return self.started.pop(name, None)
+
+
+def run_prefetch(stage: Stage, results: dict[str, Any]) -> Any:
+    """``stage.prefetch`` on its inputs, beside a step that keeps a core busy: with the threads left."""
+    with thread_cap(thread_budget() - 1):
+        return stage.prefetch(**{n: results[n] for n in stage.prefetch_inputs()})
 
 
 def independent(first: StepSpec, second: StepSpec, recipe_kinds: set[str]) -> bool:

@@ -122,24 +122,16 @@ def _run_step(spec: StepSpec, stage: Stage, results: dict[str, Any], obs: Any,
     return out, seconds
 
 
-def _prefetch(stage: Stage, inputs: dict[str, Any]) -> Any:
-    """``stage.prefetch`` beside a step that keeps a core busy: with the threads left over."""
-    from toolkit.threads import thread_budget, thread_cap
-
-    with thread_cap(thread_budget() - 1):
-        return stage.prefetch(**inputs)
-
-
 def execute(plan: Plan, obs: Observer | None = None,
             overlap: bool | None = None) -> tuple[dict[str, Any], dict[str, float]]:
     """Run the stages in recipe order; returns outputs by name (``KIND_OUTPUT``) and seconds per step.
 
     ``overlap`` (default: when the thread budget has two threads, ``toolkit.threads``): a step and
-    the next one run side by side when the next needs nothing from it, and the next one's
-    ``prefetch`` runs beside it when it needs it only as an optional input (``toolkit.overlap``);
-    step seconds then add up to more than the run's wall time.
+    the next one run side by side when the next needs nothing from it, and a stage's ``prefetch``
+    starts in a second thread as soon as its inputs are made (``toolkit.overlap``); step seconds
+    then add up to more than the run's wall time.
     """
-    from toolkit.overlap import BufferedObserver, independent, prefetches
+    from toolkit.overlap import BufferedObserver, Prefetcher, independent
     from toolkit.threads import thread_budget
 
     obs = obs or NullObserver()
@@ -151,28 +143,30 @@ def execute(plan: Plan, obs: Observer | None = None,
     # Our BLAS work is tall-skinny ((N,3) @ (3,3)): OpenBLAS threads gain nothing there and, on a
     # loaded machine, spin-wait (0.27 s vs 0.0098 s measured for one such product under load).
     with threadpool_limits(1, user_api="blas"), ThreadPoolExecutor(1, "crossview-step") as pool:
+        early = Prefetcher(steps, pool)
+
+        def behind(k: int, buffered: BufferedObserver) -> tuple[Any, float]:
+            done = _run_step(*steps[k], results, buffered)
+            early.run_here({**results, KIND_OUTPUT[steps[k][0].name]: done[0]}, k + 1)
+            return done
+
         i = 0
         while i < len(steps):
             spec, stage = steps[i]
+            if overlap:
+                early.start_beside(results, i - 1)
             if overlap and i + 1 < len(steps) and independent(spec, steps[i + 1][0], kinds):
                 buffered = BufferedObserver(obs.wants_debug)
-                behind = pool.submit(_run_step, spec, stage, results, buffered)
+                background = pool.submit(behind, i, buffered)
                 try:
-                    ahead = _run_step(*steps[i + 1], results, obs)
+                    ahead = _run_step(*steps[i + 1], results, obs, early.take(steps[i + 1][0].name))
                 finally:
-                    done = behind.result()  # waits; the earlier step's error wins, as in recipe order
+                    done = background.result()  # waits; the earlier step's error wins, as in recipe order
                 buffered.replay(obs)
                 pairs = [(spec, done), (steps[i + 1][0], ahead)]
                 i += 2
-            elif overlap and i + 1 < len(steps) and prefetches(steps[i], steps[i + 1]):
-                nspec, nstage = steps[i + 1]
-                early = pool.submit(_prefetch, nstage, {n: results[n] for n in KIND_INPUTS[nspec.name]})
-                done = _run_step(spec, stage, results, obs)  # on error the pool still waits for ``early``
-                results[KIND_OUTPUT[spec.name]] = done[0]
-                pairs = [(spec, done), (nspec, _run_step(nspec, nstage, results, obs, early))]
-                i += 2
             else:
-                pairs = [(spec, _run_step(spec, stage, results, obs))]
+                pairs = [(spec, _run_step(spec, stage, results, obs, early.take(spec.name)))]
                 i += 1
             for s, (out, seconds) in pairs:
                 results[KIND_OUTPUT[s.name]] = out

@@ -90,12 +90,15 @@ class Stage:
         release it): the runner then starts no ``prefetch`` beside it, as that would only wait."""
         return False
 
-    def prefetch(self, **inputs: Any) -> Any:
-        """Work that needs only the step's required inputs (``KIND_INPUTS``); None: nothing to do.
+    def prefetch_inputs(self) -> tuple[str, ...]:
+        """The inputs ``prefetch`` takes (default: the required ones, ``KIND_INPUTS``)."""
+        return KIND_INPUTS[self.kind]
 
-        When the step before makes only an optional input of this one (evaluate takes the adjusted
-        cameras), the runner calls this beside that step and passes the result to ``__call__`` as
-        ``prefetched=`` (a stage that overrides it takes that keyword). It gets no observer.
+    def prefetch(self, **inputs: Any) -> Any:
+        """Work that needs only ``prefetch_inputs``; None: nothing to do. The runner calls it in a
+        second thread as soon as those inputs are made (``toolkit.overlap.Prefetcher``) and passes
+        the result to ``__call__`` as ``prefetched=`` (a stage that overrides it takes that
+        keyword; it is not passed when no prefetch ran). It gets no observer.
         """
         return None
 
