@@ -1,7 +1,7 @@
 """Refine + warp + bundle adjustment on scene folders: accuracy against the truth and timings.
 
 The upstream stages (overview … match) of a recipe run once per scene and recipe and are cached
-(pickle under data/.bench-cache/, keyed by scene, step specs and the source of toolkit/ and plugins/); then, timed: refine.exhaustive (and refine.icp with --icp),
+(pickle under data/.bench-cache/, keyed by scene, step specs and the source of toolkit/ and plugins/); then, timed: refine.exhaustive with the recipe's refine parameters (and refine.icp with --icp),
 warp.inverse_log and warp.nearest, adjust.constrained_ba with pycolmap/Ceres (and scipy with
 --scipy), adjust.none. Printed per run:
 - per-point error vs truth/street_points.npy: horizontal median, 3D mean and p95; the best single
@@ -91,6 +91,15 @@ def upstream(recipe_path: Path, scene_dir: Path, refresh: bool) -> dict:
     return results
 
 
+def recipe_params(recipe_path: Path, step: str, stage) -> dict:
+    """The recipe's parameters of ``step`` when it uses ``stage`` (e.g. a per-source refine setting in
+    recipes/osm.yaml), else none: the stage's defaults."""
+    for spec in load_recipe(recipe_path).steps:
+        if spec.name == step and spec.use == stage.key():
+            return dict(spec.params)
+    return {}
+
+
 def kabsch_error(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     a, b = src.mean(0), dst.mean(0)
     U, _, Vt = np.linalg.svd((src - a).T @ (dst - b))
@@ -164,7 +173,8 @@ def run(scene_dir: Path, recipe: str, args) -> None:
     noise = float(scene.manifest.get("synth", {}).get("config", {}).get("pixel_noise_px", float("nan")))
     print(f"  street points {len(inp)}, segments {len(street)} (matched {(matches.segment_match >= 0).sum()}), "
           f"rigid oracle mean 3D {rigid.mean():.3f} m, pixel noise {noise} px")
-    refiners = [Exhaustive()] + ([IcpRefine()] if args.icp else [])
+    refiners = [Exhaustive.from_config(recipe_params(REPO / "recipes" / recipe, "refine", Exhaustive))] \
+        + ([IcpRefine()] if args.icp else [])
     for refiner in refiners:
         obs = NullObserver()
         t0, c0 = time.perf_counter(), time.process_time()

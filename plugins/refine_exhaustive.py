@@ -30,6 +30,8 @@ position along straight walls.
 
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 from pydantic import Field
 from scipy import ndimage
@@ -99,6 +101,14 @@ class Exhaustive(Stage):
                                     "per 50-100 m on campus); 50 and 120 m measured worse/no better on OSM seeds 1-2.")
         joint_rotation_deg: float = Field(2.0, ge=0, description="Joint pass: rotation searched either side of the segment's own (degrees).")
         joint_shift_m: float = Field(2.0, ge=0, description="Joint pass: offsets searched either side of the segment's own (metres).")
+        joint_segment_points: int = Field(
+            0, ge=0, description="Joint pass: at most this many footprint points (0.5 m cells) per segment in the joint "
+                                 "footprint, so that a few long walls do not outweigh the other buildings' independent "
+                                 "outline errors (0: all).")
+        joint_kernel: Literal["box", "tricube"] = Field(
+            "box", description="Joint pass: 'box' takes every segment within the window in full; 'tricube' keeps a "
+                               "share (1 − (Δs/window)³)³ of each segment's points by its route distance Δs, so that "
+                               "a longer window averages more buildings while far ones, drifted, weigh less.")
 
     @classmethod
     def scene_needs(cls, params) -> tuple[str, ...]:
@@ -241,7 +251,8 @@ class Exhaustive(Stage):
         jp = JointParams(window_m=p.joint_window_m, rotation_deg=p.joint_rotation_deg,
                          rotation_step_deg=min(0.5, p.rotation_step_deg), shift_m=p.joint_shift_m,
                          cell_m=2 * p.footprint_cell_m, max_points=p.max_footprint_points,
-                         truncate_m=p.truncate_m, inlier_m=p.inlier_m)
+                         truncate_m=p.truncate_m, inlier_m=p.inlier_m, segment_points=p.joint_segment_points,
+                         kernel=p.joint_kernel)
         idx = np.flatnonzero(valid & np.isfinite(st.route_s))
         fps = {int(i): pts.footprint(i, p.footprint_cell_m, p.max_footprint_points) for i in idx}
         T2d = joint_transforms(fps, st.T2d, st.route_s, input_anchors(street), overview.grid,

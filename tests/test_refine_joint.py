@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from toolkit.refine.joint import JointParams, joint_transforms
+from toolkit.refine.joint import JointParams, joint_footprint, joint_transforms
 from toolkit.refine.transforms import rigid2d
 from toolkit.types import Grid
 
@@ -82,3 +82,33 @@ def test_joint_registration_keeps_exact_transforms_and_skips_unknown_route_posit
     joint = joint_transforms(fps, own, route, centres, grid, label, JointParams(window_m=60.0))
     assert np.array_equal(joint[0], seed0)                 # no route position: left alone
     assert np.median(_centre_errors(joint, T_true, {i: fps[i] for i in list(fps)[1:]})) < 0.1
+
+
+def _wall(x0: float, length_m: float) -> np.ndarray:
+    t = np.arange(0.0, length_m, 0.25)
+    return np.column_stack([x0 + t, np.zeros(len(t))])
+
+
+def test_joint_footprint_box_is_every_footprint_and_caps_and_tricube_thin_by_segment():
+    fps = {0: _wall(0.0, 100.0), 1: _wall(200.0, 10.0), 2: _wall(400.0, 10.0)}
+    near = np.array([0, 1, 2])
+    ds = np.array([0.0, 30.0, 90.0])
+    box = joint_footprint(fps, near, ds, JointParams(window_m=100.0, cell_m=0.5))
+    assert len(box) == 200 + 20 + 20                       # all of them, one point per 0.5 m cell
+    capped = joint_footprint(fps, near, ds, JointParams(window_m=100.0, cell_m=0.5, segment_points=20))
+    assert len(capped) == 60                               # the long wall no longer outweighs the others
+    assert np.array_equal(capped[20:], box[200:])
+    tri = joint_footprint(fps, near, ds, JointParams(window_m=100.0, cell_m=0.5, kernel="tricube"))
+    x = tri[:, 0]
+    # tricube shares (1 - (ds/100)^3)^3: 1, 0.92, 0.019 -> 200, 19 of 20, 1 (at least one point)
+    assert ((x < 150).sum(), ((x > 150) & (x < 300)).sum(), (x > 300).sum()) == (200, 19, 1)
+    again = joint_footprint(fps, near, ds, JointParams(window_m=100.0, cell_m=0.5, kernel="tricube"))
+    assert np.array_equal(tri, again)                      # deterministic
+
+
+def test_joint_tricube_window_still_averages_out_outline_errors():
+    grid, label, fps, T_true, route, centres, shifts = _street(0)
+    own = np.stack([rigid2d(0.0, shifts[i]) @ T_true for i in fps])
+    joint = joint_transforms(fps, own, route, centres, grid, label,
+                             JointParams(window_m=120.0, kernel="tricube"))
+    assert np.median(_centre_errors(joint, T_true, fps)) < 0.65 * np.median(_centre_errors(own, T_true, fps))

@@ -41,6 +41,34 @@ class JointParams:
     max_points: int = 4000
     truncate_m: float = 3.0
     inlier_m: float = 1.0
+    segment_points: int = 0          # at most this many thinned footprint points per segment (0: all)
+    kernel: str = "box"              # "box": every segment in the window in full; "tricube": a share of its
+                                     # points falling with its route distance, (1 − (Δs/window)³)³
+
+
+def joint_footprint(footprints: dict[int, np.ndarray], near: np.ndarray, ds_m: np.ndarray,
+                    p: JointParams) -> np.ndarray:
+    """The footprints of segments ``near`` (route distances ``ds_m`` from the segment searched) as one
+    point set: each thinned to ``p.cell_m``, at most ``p.segment_points`` points per segment (so that
+    a few long walls do not outweigh the other buildings' independent outline errors), a share
+    ``(1 − (Δs/window)³)³`` of them under the tricube kernel (every segment keeps at least one point),
+    taken by an even stride (deterministic); then at most ``p.max_points`` in all."""
+    parts = []
+    for j, ds in zip(near, ds_m):
+        f = footprints[int(j)]
+        if p.segment_points <= 0 and p.kernel == "box":
+            parts.append(f)
+            continue
+        f = thin_xy(f, p.cell_m, len(f))
+        n = len(f) if p.segment_points <= 0 else min(len(f), p.segment_points)
+        if p.kernel == "tricube":
+            n = int(np.ceil(n * (1.0 - min(1.0, abs(float(ds)) / p.window_m) ** 3) ** 3))
+        elif p.kernel != "box":
+            raise ValueError(f"unknown joint kernel {p.kernel!r}")
+        if n < len(f):
+            f = f[np.linspace(0, len(f) - 1, max(n, 1)).astype(np.int64)]
+        parts.append(f)
+    return thin_xy(np.concatenate(parts), p.cell_m, p.max_points)
 
 
 def joint_transforms(footprints: dict[int, np.ndarray], T2d: np.ndarray, route_s: np.ndarray,
@@ -59,7 +87,7 @@ def joint_transforms(footprints: dict[int, np.ndarray], T2d: np.ndarray, route_s
     for i in idx:
         near = idx[(np.abs(route_s[idx] - route_s[i]) <= p.window_m)
                    & (np.linalg.norm(anchors_xy[idx] - anchors_xy[i], axis=1) <= 2 * p.window_m)]
-        fp = thin_xy(np.concatenate([footprints[int(j)] for j in near]), p.cell_m, p.max_points)
+        fp = joint_footprint(footprints, near, route_s[near] - route_s[i], p)
         if len(fp) < 10:
             continue
         centre = column_means(fp @ T2d[i][:2, :2].T + T2d[i][:2, 2])
