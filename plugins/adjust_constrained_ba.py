@@ -16,6 +16,7 @@ over every observation of the warped model, after over the observations the adju
 from __future__ import annotations
 
 import dataclasses
+from functools import partial
 from typing import Literal
 
 import numpy as np
@@ -88,10 +89,8 @@ class ConstrainedBA(Stage):
             obs.warn("camera centres are exactly collinear/coplanar (pycolmap's prior alignment would "
                      "drop the priors): using the scipy solver")
             backend = "scipy"
-        solver = adjust_ceres if backend == "ceres" else adjust_scipy
-
-        def solve(*args):
-            return run_isolated(solver, *args) if solver is adjust_ceres and self._isolated() else solver(*args)
+        solve = adjust_scipy if backend == "scipy" else \
+            partial(run_isolated, adjust_ceres) if self._isolated() else adjust_ceres
 
         res = solve(model, R_w, t_w, X_w, C_prior, bp)
         iterations = res.iterations

@@ -50,7 +50,7 @@ from toolkit.matching import chamfer as CH
 from toolkit.matching.atlas import CropAtlas, build_atlas
 from toolkit.observe import DebugPoints2D, DebugText
 from toolkit.stage import Stage, StageParams
-from toolkit.threads import thread_budget
+from toolkit.threads import map_in_order
 from toolkit.types import ConjugateGraphs, DataCosts, OverviewSegments, Scene, StreetSegments
 
 
@@ -291,8 +291,7 @@ class DistanceMap(Stage):
 
         def score(erosion, pts, pairs_, d_theta, d_off):
             return CH.search(atlas, erosion, A, pts, pairs_, d_theta, d_off, p.max_elements,
-                             probes=probes, probe_weight=p.free_space_weight,
-                             workers=min(p.workers, thread_budget()))
+                             probes=probes, probe_weight=p.free_space_weight, workers=p.workers)
 
         pairs = CH.Pairs(edge=pe, crops=lp[pl], theta=theta0, pivot_px=o_mid[pl] @ A.T + px0,
                          offset=np.zeros((len(pe), 2), np.int64), window_px=window)
@@ -410,7 +409,7 @@ class DistanceMap(Stage):
             return idx[hp[first]], h_cost[first], h_theta[first], hyp.pivot_px[first], len(hp)
 
         n_hyp = 0
-        for res in _map(best_hypothesis, range(0, P, chunk), p.workers):
+        for res in map_in_order(best_hypothesis, range(0, P, chunk), p.workers):
             if res is not None:
                 dst, cost[dst], theta[dst], pivot[dst], n = res
                 n_hyp += n
@@ -513,18 +512,6 @@ class DistanceMap(Stage):
 
 
 # --- helpers ----------------------------------------------------------------------------------
-def _map(fn, items, workers: int):
-    """map in order; numpy releases the GIL in most of the heavy work, so threads overlap."""
-    items = list(items)
-    workers = min(workers, thread_budget())
-    if workers <= 1 or len(items) <= 1:
-        return map(fn, items)
-    from concurrent.futures import ThreadPoolExecutor
-
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        return list(pool.map(fn, items))
-
-
 def _near_gps_midpoint(prior, seg_radius: np.ndarray, j: np.ndarray, k: np.ndarray, o_mid_world: np.ndarray,
                        window_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Row-major (edge, label) pairs whose over-view midpoint lies within the edge's GPS radius plus

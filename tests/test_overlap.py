@@ -232,3 +232,19 @@ def test_a_prefetch_starts_after_the_background_step_while_the_next_one_runs(pla
     monkeypatch.setattr(fake_stages.FakeUnary, "__call__", unary)
     results, _ = execute(plan(), NullObserver(), overlap=True)
     np.testing.assert_array_equal(got["prefetched"], results["overview"].ids)
+
+
+def test_map_in_order_keeps_the_item_order_within_the_budget(monkeypatch):
+    from toolkit.threads import map_in_order
+
+    names = set()
+
+    def square(x: int) -> int:
+        names.add(threading.current_thread().name)
+        return x * x
+
+    assert list(map_in_order(square, range(50), workers=8)) == [x * x for x in range(50)]
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    names.clear()
+    assert list(map_in_order(square, range(5), workers=8)) == [0, 1, 4, 9, 16]
+    assert names == {threading.main_thread().name}  # one thread: nothing else is started

@@ -15,10 +15,12 @@ from threadpoolctl import threadpool_limits
 
 from toolkit.errors import CrossviewError, RecipeError, SceneError
 from toolkit.observe import NullObserver, Observer
+from toolkit.overlap import BufferedObserver, Prefetcher, independent
 from toolkit.recipe import Recipe, StepSpec, load_recipe
 from toolkit.registry import Registry, default_registry
 from toolkit.scene import FIELD_TO_MANIFEST, load_scene
 from toolkit.stage import KIND_INPUTS, KIND_OPTIONAL, KIND_OUTPUT, KIND_OUTPUT_TYPE, Stage
+from toolkit.threads import thread_budget
 from toolkit.types import Scene
 
 
@@ -131,9 +133,6 @@ def execute(plan: Plan, obs: Observer | None = None,
     starts in a second thread as soon as its inputs are made (``toolkit.overlap``); step seconds
     then add up to more than the run's wall time.
     """
-    from toolkit.overlap import BufferedObserver, Prefetcher, independent
-    from toolkit.threads import thread_budget
-
     obs = obs or NullObserver()
     overlap = thread_budget() >= 2 if overlap is None else overlap
     results: dict[str, Any] = {"scene": plan.scene}

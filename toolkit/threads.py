@@ -10,9 +10,13 @@ instead of using ``workers=-1`` / ``os.cpu_count()``. Results never depend on th
 from __future__ import annotations
 
 import os
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from contextvars import ContextVar
-from typing import Iterator
+from typing import Callable, Iterable, Iterator, TypeVar
+
+T = TypeVar("T")
+R = TypeVar("R")
 
 _cap: ContextVar[int | None] = ContextVar("crossview_thread_cap", default=None)
 
@@ -51,3 +55,15 @@ def _process_budget() -> int:
 def query_workers(n_queries: int, min_queries: int = 200_000) -> int:
     """cKDTree ``workers`` for ``n_queries`` points: threads only pay off for large queries."""
     return thread_budget() if n_queries >= min_queries else 1
+
+
+def map_in_order(fn: Callable[[T], R], items: Iterable[T], workers: int | None = None) -> Iterator[R]:
+    """``map(fn, items)`` in up to ``workers`` threads (default and cap: the thread budget), results
+    in item order. With one thread it stays lazy; numpy, scipy and Open3D release the GIL in most
+    heavy work, so threads overlap there."""
+    items = list(items)
+    n = min(thread_budget() if workers is None else workers, thread_budget(), len(items))
+    if n <= 1:
+        return map(fn, items)
+    with ThreadPoolExecutor(n) as pool:
+        return iter(list(pool.map(fn, items)))

@@ -16,6 +16,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from toolkit.matching.atlas import SCALE, CropAtlas
+from toolkit.threads import map_in_order
 
 
 # --- street points ------------------------------------------------------------------------------
@@ -135,7 +136,8 @@ def search(atlas: CropAtlas, erosion: int, A: np.ndarray, pts: SegmentPoints, pa
     Returns cost (P,) in [0, 1] (mean truncated distance / truncation), theta (P,), offset (P,2).
     With ``probes`` (free-space points on the observer's side of each façade, same centres) the
     cost is (1 - w)·chamfer + w·(share of probes inside their own candidate segment), w =
-    ``probe_weight``, for pairs that have probes.
+    ``probe_weight``, for pairs that have probes. Batches run in up to ``workers`` threads, at most
+    the thread budget (``toolkit.threads``).
     """
     use_probes = probes is not None and probe_weight > 0 and atlas.inside is not None
     buf = atlas.level(erosion)
@@ -209,15 +211,8 @@ def search(atlas: CropAtlas, erosion: int, A: np.ndarray, pts: SegmentPoints, pa
         best_theta[sl] = th[np.arange(b), r_i]
         best_off[sl] = offs[np.arange(b), o_i]
 
-    starts = range(0, P, step)
-    if workers > 1 and len(starts) > 1:
-        from concurrent.futures import ThreadPoolExecutor
-
-        with ThreadPoolExecutor(max_workers=workers) as pool:
-            list(pool.map(batch, starts))
-    else:
-        for s in starts:
-            batch(s)
+    for _ in map_in_order(batch, range(0, P, step), workers):
+        pass
     return cost, best_theta, best_off
 
 

@@ -18,9 +18,3 @@ def single_threaded_blas():
         return nullcontext()
     return threadpool_limits(1, user_api="blas")
 
-
-def workers_for(n: int) -> int:
-    """cKDTree query workers: threads only pay off for large queries (within the thread budget)."""
-    from toolkit.threads import query_workers
-
-    return query_workers(n)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from toolkit.refine.blas import workers_for
+from toolkit.threads import query_workers
 from toolkit.types import Scene, SparseModel, StreetSegments
 
 MAX_TREE_POINTS = 1_000_000
@@ -41,7 +41,7 @@ def sparse_segments(model: SparseModel, dense: np.ndarray, carrier: np.ndarray, 
     # a tree over the dense points, queried by the few sparse ones: its build dominates, and an
     # unbalanced, non-compacted build is ~2× faster to make for the same nearest neighbours
     tree = cKDTree(dense[idx], balanced_tree=False, compact_nodes=False)
-    d, nn = tree.query(model.points3d, distance_upper_bound=max_gap_m, workers=workers_for(len(model.points3d)))
+    d, nn = tree.query(model.points3d, distance_upper_bound=max_gap_m, workers=query_workers(len(model.points3d)))
     return np.where(np.isfinite(d), carrier[idx[np.minimum(nn, len(idx) - 1)]], -1)
 
 

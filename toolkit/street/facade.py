@@ -12,14 +12,13 @@ growing links, so no (points × k) table is ever held whole.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from toolkit.street.normals import neighbourhood_covariance, symmetric_eigenvalues
-from toolkit.threads import thread_budget
+from toolkit.threads import map_in_order
 
 CHUNK = 1 << 16
 
@@ -64,13 +63,7 @@ def facade_points(points: np.ndarray, tree: cKDTree, columns: tuple[np.ndarray, 
         return cand[keep].astype(np.int32), np.ascontiguousarray(nbrs[keep, 1:graph_k + 1]), curv
 
     # whole chunks (query and the numpy after it) run in threads, joined in chunk order
-    starts = range(0, len(candidates), CHUNK)
-    workers = min(thread_budget(), len(starts))
-    if workers > 1:
-        with ThreadPoolExecutor(workers) as pool:
-            parts = [r for r in pool.map(chunk, starts) if r is not None]
-    else:
-        parts = [r for r in map(chunk, starts) if r is not None]
+    parts = [r for r in map_in_order(chunk, range(0, len(candidates), CHUNK)) if r is not None]
     keep_idx, keep_graph, keep_curv = (list(x) for x in zip(*parts)) if parts else ([], [], [])
     if not keep_idx:
         return Facade(np.zeros(0, np.int32), np.zeros((0, graph_k), np.int32), np.zeros(0, np.float32))

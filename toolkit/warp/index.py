@@ -13,12 +13,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from toolkit.arrays import dense_rank
 from toolkit.errors import StageError
-from toolkit.refine.blas import workers_for
 from toolkit.refine.consistency import gap_matrix
 from toolkit.refine.segments import input_anchors, thin_xy
+from toolkit.threads import query_workers
 from toolkit.types import SegmentTransforms, StreetSegments
-from toolkit.arrays import dense_rank
 from toolkit.warp.cells import cell_grid_keys
 
 
@@ -36,7 +36,7 @@ def footprint_gaps(owner: np.ndarray, other: np.ndarray, fp_xy: np.ndarray, fp_s
         size = fp_start[owner[pairs] + 1] - fp_start[owner[pairs]]
         first = np.cumsum(size) - size
         rows = np.repeat(fp_start[owner[pairs]] - first, size) + np.arange(int(size.sum()))
-        d = trees[int(other[pairs[0]])].query(fp_xy[rows], workers=workers_for(len(rows)))[0]
+        d = trees[int(other[pairs[0]])].query(fp_xy[rows], workers=query_workers(len(rows)))[0]
         gap[pairs] = np.minimum.reduceat(d, first)
     return gap
 
@@ -105,21 +105,21 @@ class SegmentIndex:
         """
         xy = np.asarray(xy, np.float64)
         if len(xy) < 10_000:
-            return self.all_seg[self.all_tree.query(xy, workers=workers_for(len(xy)))[1]]
+            return self.all_seg[self.all_tree.query(xy, workers=query_workers(len(xy)))[1]]
         key, lo, nx, ny = cell_grid_keys(xy, cell_m)
         occupied, cell = dense_rank(key, nx * ny)
         centres = (np.column_stack([occupied // ny + lo[0], occupied % ny + lo[1]]) + 0.5) * cell_m
-        d0, nearest_to_centre = self.all_tree.query(centres, workers=workers_for(len(centres)))
+        d0, nearest_to_centre = self.all_tree.query(centres, workers=query_workers(len(centres)))
         # slack for float rounding (distances, cell assignment): near-ties between segments stay unsure
         reach = (d0 + cell_m * np.sqrt(2.0)) * (1 + 1e-9) + 1e-9
-        near = self.all_tree.query_ball_point(centres, reach, workers=workers_for(len(centres)))
+        near = self.all_tree.query_ball_point(centres, reach, workers=query_workers(len(centres)))
         size = np.fromiter(map(len, near), np.int64, len(near))
         seg = self.all_seg[np.concatenate(near).astype(np.int64)]
         first = np.cumsum(size) - size
         sure = np.minimum.reduceat(seg, first) == np.maximum.reduceat(seg, first)
         out = self.all_seg[nearest_to_centre][cell]
         unsure = ~sure[cell]
-        out[unsure] = self.all_seg[self.all_tree.query(xy[unsure], workers=workers_for(int(unsure.sum())))[1]]
+        out[unsure] = self.all_seg[self.all_tree.query(xy[unsure], workers=query_workers(int(unsure.sum())))[1]]
         return out
 
     def anchors(self, xy: np.ndarray, carrier: np.ndarray, valid_mask: np.ndarray) -> np.ndarray:
@@ -144,5 +144,5 @@ class SegmentIndex:
         return [self.trees[int(j)].data for j in segments]
 
     def distances(self, cand: np.ndarray, xy: np.ndarray) -> np.ndarray:
-        w = workers_for(len(xy))
+        w = query_workers(len(xy))
         return np.column_stack([self.trees[int(j)].query(xy, workers=w)[0] for j in cand])

@@ -20,8 +20,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from toolkit.refine.blas import workers_for
 from toolkit.refine.route import camera_route_positions
+from toolkit.threads import query_workers
 from toolkit.types import SparseModel
 
 
@@ -51,7 +51,7 @@ def point_route_positions(points: np.ndarray, sparse_xyz: np.ndarray, sparse_s: 
     if not ok.any() or len(points) == 0:
         return out
     d, nn = cKDTree(sparse_xyz[ok]).query(points, distance_upper_bound=max_gap_m,
-                                          workers=workers_for(len(points)))
+                                          workers=query_workers(len(points)))
     hit = np.isfinite(d)
     out[hit] = sparse_s[ok][nn[hit]]
     return out
@@ -73,7 +73,7 @@ def reanchor_other_pass(anchors: np.ndarray, xy: np.ndarray, point_s: np.ndarray
         return anchors
     fp_key = np.column_stack([fp_xy[keep], segment_s[fp_seg[keep]] * route_scale])
     q = np.column_stack([xy[other], point_s[other] * route_scale])
-    _, nn = cKDTree(fp_key).query(q, workers=workers_for(len(q)))
+    _, nn = cKDTree(fp_key).query(q, workers=query_workers(len(q)))
     cand = fp_seg[keep][nn]
     same_pass = np.abs(segment_s[cand] - point_s[other]) <= pass_gap_m
     idx = np.flatnonzero(other)
