@@ -106,7 +106,8 @@ def mutual_feature_matches(a: np.ndarray, b: np.ndarray, chunk: int = 256) -> np
 
 def register_fpfh(src: np.ndarray, dst: np.ndarray, p: GlobalFpfh.Params) -> tuple[np.ndarray, float, float]:
     """(4,4) src → dst, RANSAC+ICP fitness, inlier RMSE. Both clouds are centred locally first."""
-    import open3d as o3d
+    from toolkit.open3d_import import open3d
+    o3d = open3d()
 
     reg = o3d.pipelines.registration
     src_origin, dst_origin = src.mean(axis=0), dst.mean(axis=0)

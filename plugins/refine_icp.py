@@ -168,7 +168,8 @@ def _voxel(xyz: np.ndarray, voxel: float, max_points: int) -> np.ndarray:
 
 def _file_normals(path, n: int) -> np.ndarray | None:
     """Per-point normals stored in the over-view cloud file (PLY nx, ny, nz), else None."""
-    import open3d as o3d
+    from toolkit.open3d_import import open3d
+    o3d = open3d()
 
     if path is None or path.suffix.lower() != ".ply":
         return None

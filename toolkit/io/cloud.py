@@ -184,7 +184,8 @@ def _read_las(path: Path, chunk_points: int = 2_000_000):
 
 
 def _read_o3d(path: Path):
-    import open3d as o3d
+    from toolkit.open3d_import import open3d
+    o3d = open3d()
 
     pcd = o3d.io.read_point_cloud(str(path))
     xyz = np.asarray(pcd.points, dtype=np.float64)

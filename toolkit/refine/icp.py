@@ -75,7 +75,8 @@ def outline_points(grid: Grid, mask: np.ndarray) -> np.ndarray:
 
 
 def _pcd(xyz: np.ndarray):
-    import open3d as o3d
+    from toolkit.open3d_import import open3d
+    o3d = open3d()
 
     pc = o3d.geometry.PointCloud()
     pc.points = o3d.utility.Vector3dVector(np.ascontiguousarray(xyz, dtype=np.float64))
@@ -87,7 +88,8 @@ def icp_cloud(source: np.ndarray, target: np.ndarray, p: IcpParams,
     """ICP of local-frame source onto local-frame target (both (N,3)): point-to-plane when the
     target comes with normals, else point-to-point (normals estimated on a 2.5D over-view cloud
     leave sliding directions unconstrained and the point-to-plane solve can run away)."""
-    import open3d as o3d
+    from toolkit.open3d_import import open3d
+    o3d = open3d()
 
     reg = o3d.pipelines.registration
     tgt = _pcd(target)
@@ -107,7 +109,8 @@ def icp_cloud(source: np.ndarray, target: np.ndarray, p: IcpParams,
 
 def icp_outline(source_xy: np.ndarray, outline_xy: np.ndarray, p: IcpParams) -> IcpResult:
     """Point-to-point ICP in the plane; the result is kept as a yaw plus a horizontal shift."""
-    import open3d as o3d
+    from toolkit.open3d_import import open3d
+    o3d = open3d()
 
     reg = o3d.pipelines.registration
     src = _pcd(np.column_stack([source_xy, np.zeros(len(source_xy))]))

@@ -15,7 +15,8 @@ from scipy.spatial import cKDTree
 
 def open3d_normals(points: np.ndarray, knn: int) -> np.ndarray:
     """(M,3) float64 → (M,3) float32 unit normals (sign arbitrary) from Open3D KNN PCA."""
-    import open3d as o3d
+    from toolkit.open3d_import import open3d
+    o3d = open3d()
 
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn))

@@ -86,7 +86,8 @@ def steep_truth(truth_points: np.ndarray, lidar_points: np.ndarray, angle_deg: f
                 knn: int = 12) -> np.ndarray:
     """(N,) bool: the noise-free reference surface (truth/lidar.ply) nearest to each true street
     point has a normal more than ``angle_deg`` from vertical (walls, not roofs or ground)."""
-    import open3d as o3d
+    from toolkit.open3d_import import open3d
+    o3d = open3d()
     from scipy.spatial import cKDTree
 
     origin = np.median(lidar_points, axis=0)

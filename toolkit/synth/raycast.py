@@ -15,7 +15,8 @@ BATCH = 2_000_000
 
 class Caster:
     def __init__(self, mesh: TriMesh):
-        import open3d as o3d
+        from toolkit.open3d_import import open3d
+        o3d = open3d()
 
         self._o3d = o3d
         self.mesh = mesh
