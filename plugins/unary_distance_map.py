@@ -178,7 +178,12 @@ class DistanceMap(Stage):
 
     def prefetch(self, overview: OverviewSegments, scene: Scene) -> CropAtlas:
         """The distance atlas: it needs only the over-view, so the runner builds it while the
-        street step runs."""
+        street step runs. The COLMAP model that the free-space term and GPS pruning read is read
+        here too (``load_sparse`` keeps it): 0.3 s of text parsing on campus."""
+        if scene is not None and scene.has("sparse") and (self._uses_probes(scene) or scene.has("gps")):
+            from toolkit.scene import load_sparse
+
+            load_sparse(scene, who="unary.distance_map")
         return self._atlas(overview, self._uses_probes(scene))
 
     def _levels(self) -> tuple[list[int], list[tuple[float, int, int]]]:
