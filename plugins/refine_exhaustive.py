@@ -30,12 +30,14 @@ position along straight walls.
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Literal
 
 import numpy as np
 from pydantic import Field
 from scipy import ndimage
 
+from toolkit.forked import map_chunks_forked
 from toolkit.observe import DebugPoints2D
 from toolkit.refine.blas import single_threaded_blas
 from toolkit.refine.finish import ConsistencyParams, compose, consistent, warn_rejected
@@ -171,13 +173,34 @@ class Exhaustive(Stage):
     def _register(self, items, pts, overview, heights, sp, gp, st) -> list[bool]:
         """Tilt, exhaustive 2D search and height of segments, each item (i, seed, over-view segment o
         or None: all, window, over-view ground normal, height, match confidence); whether each is
-        registered. The searches' sub-pixel steps run together (``search_segments``: the same
-        results as one segment at a time, ~100 → ~25 numpy calls per segment and step)."""
+        registered. The items are searched in forked children beside this process when there are
+        cores to spare (``toolkit.forked``: these searches keep the GIL, so threads gain nothing)."""
+        p = self.params
+        for i, _, o, box, o_normal, o_height, match_conf in items:
+            st.target[i] = (o, box, o_normal, o_height, match_conf)
+            self._prepared_ground(i, pts, gp, st)  # here, so that the cache outlives the children
+        found = map_chunks_forked(partial(self._search_items, pts, overview, heights, sp, gp, st), items)
+        registered = {}
+        for (i, *_, match_conf), fit in zip(items, found):
+            if fit is None:
+                continue
+            st.T2d[i], st.R_z[i], st.t_z[i], st.centres[i], st.cost[i], inlier_ratio, shown = fit
+            st.conf[i] = match_conf * inlier_ratio
+            st.valid[i] = inlier_ratio >= p.min_inlier_ratio
+            if st.debug:
+                st.shown.append((i, shown))
+            registered[i] = bool(st.valid[i])
+        return [registered.get(item[0], False) for item in items]
+
+    def _search_items(self, pts, overview, heights, sp, gp, st, items) -> list[tuple | None]:
+        """Per item: (T2d, R_z, t_z, centre, cost, inlier ratio, registered footprint or None), or None
+        when its footprint is too small. Reads ``st`` only. The searches' sub-pixel steps run together
+        (``search_segments``: the same results as one segment at a time, ~100 → ~25 numpy calls per
+        segment and step)."""
         p = self.params
         ready, footprints = [], []
         for item in items:
             i, seed, o, box, o_normal, o_height, match_conf = item
-            st.target[i] = (o, box, o_normal, o_height, match_conf)
             g0 = self._ground_step(i, seed, pts, heights, o_normal, o_height, gp, st, with_height=False)  # tilt only
             fp = pts.footprint(i, p.footprint_cell_m, p.max_footprint_points, g0.R_z, g0.centre)
             if len(fp) >= 10:
@@ -185,26 +208,27 @@ class Exhaustive(Stage):
                 footprints.append(fp)
         results = search_segments([(fp, item[1], item[2], item[3]) for item, fp in zip(ready, footprints)],
                                   overview.grid, overview.label_image, sp, st.outlines, with_seed_cost=False)
-        registered = {}
-        for (i, _, _, _, o_normal, o_height, match_conf), fp, res in zip(ready, footprints, results):
+        fits = {}
+        for (i, _, _, _, o_normal, o_height, _), fp, res in zip(ready, footprints, results):
             g1 = self._ground_step(i, res.T2d, pts, heights, o_normal, o_height, gp, st)
-            st.T2d[i], st.R_z[i], st.t_z[i], st.centres[i] = res.T2d, g1.R_z, g1.t_z, g1.centre
-            st.cost[i] = res.cost_m
-            st.conf[i] = match_conf * res.inlier_ratio
-            st.valid[i] = res.inlier_ratio >= p.min_inlier_ratio
-            if st.debug:
-                st.shown.append((i, fp @ res.T2d[:2, :2].T + res.T2d[:2, 2]))
-            registered[i] = bool(st.valid[i])
-        return [registered.get(item[0], False) for item in items]
+            shown = fp @ res.T2d[:2, :2].T + res.T2d[:2, 2] if st.debug else None
+            fits[i] = (res.T2d, g1.R_z, g1.t_z, g1.centre, res.cost_m, res.inlier_ratio, shown)
+        return [fits.get(item[0]) for item in items]
 
     @staticmethod
-    def _ground_step(i, T2d, pts, heights, o_normal, o_height, gp, st, with_height=True):
+    def _prepared_ground(i, pts, gp, st):
+        """Segment i's ``prepare_ground`` (its transform-independent ground part), computed once."""
+        if i not in st.ground:
+            ground, gnormals = pts.ground(i)
+            st.ground[i] = prepare_ground(ground, gnormals, gp)
+        return st.ground[i]
+
+    @classmethod
+    def _ground_step(cls, i, T2d, pts, heights, o_normal, o_height, gp, st, with_height=True):
         """``ground_step`` of segment i, its transform-independent part computed once per segment."""
         ground, gnormals = pts.ground(i)
-        if i not in st.ground:
-            st.ground[i] = prepare_ground(ground, gnormals, gp)
-        return ground_step(ground, gnormals, T2d, heights, o_normal, o_height, gp, prepared=st.ground[i],
-                           with_height=with_height)
+        return ground_step(ground, gnormals, T2d, heights, o_normal, o_height, gp,
+                           prepared=cls._prepared_ground(i, pts, gp, st), with_height=with_height)
 
     def _placed_by_neighbours(self, i, known, k, street, overview, pts, st, T):
         """(seed transform, over-view window) for segment i as its k nearest ``known`` neighbours place

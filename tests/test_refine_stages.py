@@ -126,3 +126,24 @@ def test_icp_refines_the_match(small, target, tol_h):
 def test_icp_scene_needs():
     assert "overview_cloud" in IcpRefine.scene_needs(IcpRefine.Params(target="cloud"))
     assert IcpRefine.scene_needs(IcpRefine.Params()) == ("street_cloud",)
+
+
+def test_exhaustive_gives_the_same_bytes_with_its_searches_in_a_forked_child(small, monkeypatch):
+    from functools import partial
+
+    import plugins.refine_exhaustive as refine_module
+    from toolkit.forked import can_fork
+    from toolkit.threads import thread_budget, thread_cap
+
+    if thread_budget() < 2 or not can_fork():
+        pytest.skip("needs two threads and fork")
+    w, scene = small
+    m = matches_for(w, dxy=2.5, dth_deg=6.0)
+    with thread_cap(1):
+        here = Exhaustive()(m, w["street"], w["overview"], scene, NullObserver())
+    # four segments: below the usual minimum, so fork for any number of them
+    monkeypatch.setattr(refine_module, "map_chunks_forked", partial(refine_module.map_chunks_forked, min_jobs=2))
+    split = Exhaustive()(m, w["street"], w["overview"], scene, NullObserver())
+    for a, b in ((here.T, split.T), (here.valid, split.valid), (here.cost, split.cost),
+                 (here.confidence, split.confidence)):
+        assert a.tobytes() == b.tobytes()

@@ -5,8 +5,8 @@ loop iterations in 2.2 s instead of ~150 000), so no other thread of the run can
 not even numpy or KD-tree code that would release the GIL. In a child process the solve leaves
 this process free: the runner computes the evaluation's point metrics beside it
 (``toolkit.overlap``). The child runs the same code on the same inputs, single-threaded, so the
-result is the same bytes. With a thread budget of one (batch workers) or without ``fork``
-(not Linux/macOS), the solve runs here.
+result is the same bytes. With a thread budget of one (batch workers) or where this process may not fork
+(``toolkit.forked.can_fork``), the solve runs here.
 """
 
 from __future__ import annotations
@@ -16,14 +16,15 @@ from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Callable, TypeVar
 
+from toolkit.forked import can_fork
 from toolkit.threads import thread_budget
 
 R = TypeVar("R")
 
 
 def isolates() -> bool:
-    """Whether ``run_isolated`` runs in a child process here (a second thread, and ``fork``)."""
-    return thread_budget() >= 2 and "fork" in multiprocessing.get_all_start_methods()
+    """Whether ``run_isolated`` runs in a child process here (a second thread, and ``can_fork``)."""
+    return thread_budget() >= 2 and can_fork()
 
 
 def run_isolated(fn: Callable[..., R], *args: Any) -> R:

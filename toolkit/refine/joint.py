@@ -22,9 +22,11 @@ change along the route (campus seed 1: the true transform of a segment applied t
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
+from toolkit.forked import map_chunks_forked
 from toolkit.refine.columns import column_means
 from toolkit.refine.search2d import AllOutlines, SearchParams, search_segments
 from toolkit.refine.segments import thin_xy
@@ -94,6 +96,9 @@ def joint_transforms(footprints: dict[int, np.ndarray], T2d: np.ndarray, route_s
         cr, cc = np.round(grid.world_to_pixel(centre[None])[0]).astype(int)
         searched.append(i)
         problems.append((fp, T2d[i], None, (slice(cr - r, cr + r + 1), slice(cc - r, cc + r + 1))))
-    for i, res in zip(searched, search_segments(problems, grid, label_image, sp, outlines, with_seed_cost=False)):
+    # independent searches: beside this process in forked children when there are cores to spare
+    results = map_chunks_forked(partial(search_segments, grid=grid, label_image=label_image, p=sp, outlines=outlines,
+                                        with_seed_cost=False), problems)
+    for i, res in zip(searched, results):
         out[i] = res.T2d
     return out

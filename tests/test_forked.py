@@ -1,0 +1,59 @@
+"""toolkit.forked: independent jobs split between this process and forked children."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+import toolkit.forked as forked
+from toolkit.forked import can_fork, map_chunks_forked
+from toolkit.threads import thread_budget, thread_cap
+
+needs_two = pytest.mark.skipif(thread_budget() < 2 or not can_fork(), reason="needs two threads and fork")
+SEEN: list[int] = []
+
+
+def _square_with_pid(jobs: list[int]) -> list[tuple[int, int]]:
+    SEEN.extend(jobs)  # a child's changes stay in the child
+    return [(j * j, os.getpid()) for j in jobs]
+
+
+def _fail_on_three(jobs: list[int]) -> list[int]:
+    if 3 in jobs:
+        raise ValueError("job 3")
+    return jobs
+
+
+@needs_two
+def test_children_run_a_share_and_results_keep_job_order():
+    SEEN.clear()
+    out = map_chunks_forked(_square_with_pid, range(40))
+    assert [r for r, _ in out] == [j * j for j in range(40)]
+    pids = [p for _, p in out]
+    assert len(set(pids)) == 2 and pids[-1] == os.getpid()  # this process takes the last chunk
+    here = [j for j, (_, p) in enumerate(out) if p == os.getpid()]
+    assert SEEN == here  # what the child appended to SEEN stayed in the child
+    assert not forked._BUSY.locked() and forked._JOB is None
+
+
+def test_one_thread_or_few_jobs_run_here():
+    with thread_cap(1):
+        assert {p for _, p in map_chunks_forked(_square_with_pid, range(40))} == {os.getpid()}
+    assert {p for _, p in map_chunks_forked(_square_with_pid, range(10))} == {os.getpid()}
+
+
+@needs_two
+def test_a_second_map_while_one_runs_stays_here():
+    assert forked._BUSY.acquire(blocking=False)
+    try:
+        assert {p for _, p in map_chunks_forked(_square_with_pid, range(40))} == {os.getpid()}
+    finally:
+        forked._BUSY.release()
+
+
+@needs_two
+def test_an_error_in_a_child_is_raised_here_with_its_type():
+    with pytest.raises(ValueError, match="job 3"):
+        map_chunks_forked(_fail_on_three, range(40))  # job 3 is in the child's chunk
+    assert not forked._BUSY.locked() and forked._JOB is None
