@@ -57,3 +57,19 @@ def test_an_error_in_a_child_is_raised_here_with_its_type():
     with pytest.raises(ValueError, match="job 3"):
         map_chunks_forked(_fail_on_three, range(40))  # job 3 is in the child's chunk
     assert not forked._BUSY.locked() and forked._JOB is None
+
+
+def _map_in_daemon(queue) -> None:
+    queue.put({p for _, p in map_chunks_forked(_square_with_pid, range(40))} == {os.getpid()})
+
+
+def test_a_daemonic_process_like_a_dask_worker_maps_here():
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+    proc = ctx.Process(target=_map_in_daemon, args=(queue,), daemon=True)
+    proc.start()
+    ran_here = queue.get(timeout=60)
+    proc.join(timeout=60)
+    assert ran_here and proc.exitcode == 0  # no "daemonic processes are not allowed to have children"

@@ -11,6 +11,7 @@ or where this process may not fork (``can_fork``), everything runs here.
 from __future__ import annotations
 
 import multiprocessing
+import sys
 import threading
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -34,9 +35,10 @@ def _run_chunk(k: int) -> list:
 
 
 def can_fork() -> bool:
-    """Whether this process may fork worker children: ``fork`` exists (Linux, macOS) and this is not
-    a daemonic process (multiprocessing forbids children there, e.g. in a dask worker)."""
-    return "fork" in multiprocessing.get_all_start_methods() and not multiprocessing.current_process().daemon
+    """Whether this process may fork worker children: on Linux (macOS system libraries, e.g. the
+    Accelerate BLAS, may abort in a child forked from a threaded process) and not in a daemonic
+    process (multiprocessing forbids children there, e.g. in a dask worker)."""
+    return sys.platform.startswith("linux") and not multiprocessing.current_process().daemon
 
 
 def map_chunks_forked(fn: Callable[[list[T]], list[R]], jobs: Sequence[T], min_jobs: int = 32) -> list[R]:
