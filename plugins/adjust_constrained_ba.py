@@ -24,7 +24,7 @@ from pydantic import Field
 
 from toolkit.adjust.ba import BAParams, adjust_ceres, adjust_scipy, degenerate_centres
 from toolkit.adjust.isolate import isolates, run_isolated
-from toolkit.adjust.model import registered_poses, residuals, rms_px, warp_points3d
+from toolkit.adjust.model import registered_poses, registered_spread, residuals, rms_px, warp_points3d
 from toolkit.io.colmap import replace_poses
 from toolkit.refine.blas import single_threaded_blas
 from toolkit.stage import Stage, StageParams
@@ -54,6 +54,13 @@ class ConstrainedBA(Stage):
             4.0, gt=0, description="After a first adjustment, observations reprojecting farther than this (or behind "
                                    "their camera) are removed and the adjustment is repeated, as COLMAP filters "
                                    "(pixels; None keeps every observation).")
+
+        prior_spread: bool = Field(
+            True, description="Each camera's position prior has variance 1/λ plus the square of the warp's spread "
+                              "at it (m²: how far apart the segment transforms blended at the camera put it, "
+                              "Registration.camera_spread_m), so a camera the warp places uncertainly is held "
+                              "more loosely and follows its well-placed neighbours through the images. Off: the "
+                              "paper's single λ for every camera.")
 
     @classmethod
     def scene_needs(cls, params) -> tuple[str, ...]:
@@ -92,7 +99,9 @@ class ConstrainedBA(Stage):
         solve = adjust_scipy if backend == "scipy" else \
             partial(run_isolated, adjust_ceres) if self._isolated() else adjust_ceres
 
-        res = solve(model, R_w, t_w, X_w, C_prior, bp)
+        spread = registered_spread(model, registration) if p.prior_spread else None
+        extra_var = None if spread is None else spread ** 2
+        res = solve(model, R_w, t_w, X_w, C_prior, bp, extra_var)
         iterations = res.iterations
         X = _place_unadjusted(model, res)
         if p.max_reproj_error_px is not None:
@@ -104,7 +113,7 @@ class ConstrainedBA(Stage):
                 # flat valleys of a forward-moving camera (measured: points 0.7 m off instead of 0.08)
                 model = dataclasses.replace(model, observations=model.observations[~bad])
                 X_w = warp_points3d(model, R_w, t_w)
-                res = solve(model, R_w, t_w, X_w, C_prior, bp)
+                res = solve(model, R_w, t_w, X_w, C_prior, bp, extra_var)
                 iterations += res.iterations
                 X = _place_unadjusted(model, res)
                 # what the second adjustment still cannot fit is dropped, not adjusted a third time

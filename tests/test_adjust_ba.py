@@ -176,3 +176,31 @@ def test_ceres_in_a_child_process_gives_the_same_bytes(small_problem, monkeypatc
     for a, b in ((here.model.R, here_or_child.model.R), (here.model.t, here_or_child.model.t),
                  (here.model.points3d, here_or_child.model.points3d)):
         assert a.tobytes() == b.tobytes()
+
+
+def test_prior_variances_add_the_warp_spread_to_one_over_lambda():
+    from toolkit.adjust.ba import BAParams, prior_variances
+
+    p = BAParams(lambda_=20.0)
+    assert np.allclose(prior_variances(3, p, None), 0.05)
+    assert np.allclose(prior_variances(3, p, np.array([0.0, 0.01, 1.0])), [0.05, 0.06, 1.05])
+
+
+def test_camera_spread_loosens_only_the_cameras_the_warp_places_uncertainly(small_problem):
+    model, reg, truth, scene = small_problem
+    plain = ConstrainedBA.from_config({"prior_spread": False})(reg, scene, NullObserver())
+    zero = ConstrainedBA()(dataclasses.replace(reg, camera_spread_m=np.zeros(len(reg.image_names))), scene,
+                           NullObserver())
+    assert np.allclose(zero.model.t, plain.model.t, atol=1e-9)        # no spread: the paper's λ
+    # one camera's warped centre pushed 3 m off, with a matching spread: the images bring it back
+    # closer than with the paper's uniform λ
+    k = 3
+    C = -np.einsum("cba,cb->ca", reg.R, reg.t)
+    C[k] += [3.0, 0.0, 0.0]
+    off = dataclasses.replace(reg, t=-np.einsum("cab,cb->ca", reg.R, C))
+    spread = np.zeros(len(reg.image_names))
+    spread[k] = 3.0
+    held = ConstrainedBA.from_config({"prior_spread": False})(off, scene, NullObserver())
+    loose = ConstrainedBA()(dataclasses.replace(off, camera_spread_m=spread), scene, NullObserver())
+    err = lambda m: np.linalg.norm(m.centres[k] - truth["Cs"][k])
+    assert err(loose.model) < err(held.model)

@@ -296,3 +296,15 @@ def test_cell_keys_group_points_by_anchor_then_cell_like_a_sort():
     uniq, inv = np.unique(keys, axis=0, return_inverse=True)
     assert np.array_equal(rows, inv.ravel())
     assert np.array_equal(table[:, 0], uniq[:, 0]) and np.allclose(table[:, 1:], (uniq[:, 1:] + 0.5) * 0.5)
+
+
+def test_relative_inverse_log_weights_measure_from_the_nearest_segment():
+    d = np.array([[0.2, 5.0, 30.0], [40.0, 41.0, 120.0]])
+    w = inverse_log_weights(d, 1.5, relative=True)
+    assert np.allclose(w[0], inverse_log_weights(d[0] - 0.2, 1.5))      # on a footprint: (nearly) as before
+    assert np.isclose(w[1, 0], 1 / np.log(1.5)) and np.isclose(w[1, 1], 1 / np.log(1.5))
+    assert np.isclose(w[1, 2], 1 / np.log(80.0))
+    # far from every footprint the nearest segments dominate; absolute distances weigh all alike
+    wa = inverse_log_weights(d, 1.5)
+    assert w[1, 2] / w[1].sum() < wa[1, 2] / wa[1].sum()
+

@@ -207,3 +207,40 @@ def test_blend_points_equal_the_plain_cell_blend_bit_for_bit(k):
     anchors = index.anchors(xy, street.carrier, transforms.valid)
     fast = blend_points(points, xy, anchors, T, index, k, 1.5, cell_m=0.5, chunk=4096)
     assert np.array_equal(fast, _plain_blend(points, xy, anchors, T, index, k, 1.5, 0.5))
+
+
+def test_neighbours_of_another_pass_of_the_route_are_left_out():
+    street, transforms, _ = _random_street(6)
+    k = 4
+    plain = SegmentIndex.build(street, transforms, k)
+    S = len(street)
+    route_s = np.arange(S, dtype=np.float64) * 100.0          # segment i captured at 100·i m
+    route_s[1] = np.nan                                       # unknown: never excluded
+    index = SegmentIndex.build(street, transforms, k, route_s=route_s, route_gap_m=250.0)
+    for i, nb in index.neighbours.items():
+        with np.errstate(invalid="ignore"):
+            assert not np.any(np.abs(route_s[nb] - route_s[i]) > 250.0)
+        # the same search among the same-pass candidates: a subset of the plain candidates' order
+        same = [j for j in plain.neighbours[i] if not abs(route_s[j] - route_s[i]) > 250.0]
+        assert list(nb[:len(same)]) == same[:len(nb)] or set(same) <= set(nb)
+    assert SegmentIndex.build(street, transforms, k, route_s=route_s).neighbours.keys() == plain.neighbours.keys()
+    for i, nb in SegmentIndex.build(street, transforms, k, route_s=route_s).neighbours.items():
+        assert np.array_equal(nb, plain.neighbours[i])       # no gap given: unchanged
+
+
+def test_camera_spread_is_zero_for_agreeing_transforms_and_grows_with_disagreement():
+    from toolkit.warp.blend import blend_rigid
+
+    street, transforms, points = _random_street(4)
+    index = SegmentIndex.build(street, transforms, 4)
+    cams = points[:50]
+    xy = street.level(cams)[:, :2]
+    anchors = index.nearest(xy)
+    same = np.repeat(transforms.T[index.valid[:1]], len(transforms.T), axis=0)
+    pos, R, spread = blend_rigid(cams, xy, anchors, same, index, 4, 1.5)
+    assert np.allclose(spread, 0.0, atol=1e-6)
+    assert np.allclose(pos, cams @ same[0, :3, :3].T + same[0, :3, 3])
+    off = same.copy()
+    off[index.valid[1::2], :3, 3] += [0.0, 2.0, 0.0]          # every other segment placed 2 m off
+    _, _, spread2 = blend_rigid(cams, xy, anchors, off, index, 4, 1.5)
+    assert np.all(spread2 <= 1.0 + 1e-9) and spread2.max() > 0.3    # ≤ half the gap, weighted RMS

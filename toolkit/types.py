@@ -312,6 +312,8 @@ class Registration:
     points: (N,3) float64, row i = input street point i.
     image_names: (C,); R: (C,3,3), t: (C,3) world-to-camera poses after warping.
     point_segment: (N,) int carrier segment used (-1: none).
+    camera_spread_m: (C,) spread of the segment transforms blended at each camera centre (the
+    weighted RMS distance of their placements from the blended one, metres), or None (unknown).
     """
 
     points: Array
@@ -319,6 +321,7 @@ class Registration:
     R: Array
     t: Array
     point_segment: Array
+    camera_spread_m: Array | None = None
 
 
 @dataclass(frozen=True)

@@ -62,8 +62,17 @@ def _tracks(model: SparseModel):
     return img, pt, order, counts, starts, pos, track_len
 
 
+def prior_variances(C: int, p: BAParams, extra_var_m2: np.ndarray | None) -> np.ndarray:
+    """(C,) variance (m², per axis) of each camera's prior position: 1/λ (the paper's λ‖ΔC‖²), plus
+    ``extra_var_m2`` where given (e.g. the warp's uncertainty of that camera's position)."""
+    var = np.full(C, 1.0 / p.lambda_)
+    if extra_var_m2 is not None:
+        var += np.asarray(extra_var_m2, np.float64)
+    return var
+
+
 def adjust_ceres(model: SparseModel, R0: np.ndarray, t0: np.ndarray, X0: np.ndarray, C_prior: np.ndarray,
-                 p: BAParams) -> BAResult:
+                 p: BAParams, extra_var_m2: np.ndarray | None = None) -> BAResult:
     import pycolmap
 
     origin = C_prior.mean(axis=0)
@@ -114,10 +123,11 @@ def adjust_ceres(model: SparseModel, R0: np.ndarray, t0: np.ndarray, X0: np.ndar
     for cid in model.cameras:
         cfg.set_constant_cam_intrinsics(int(cid))
     priors = []
+    var = prior_variances(len(C_prior), p, extra_var_m2)
     for k in observed:
         prior = pycolmap.PosePrior()
         prior.position = C_prior[k] - origin
-        prior.position_covariance = np.eye(3) / p.lambda_
+        prior.position_covariance = np.eye(3) * var[k]
         prior.coordinate_system = pycolmap.PosePriorCoordinateSystem.CARTESIAN
         prior.corr_data_id = rec.images[int(iid[k])].data_id
         priors.append(prior)
@@ -135,7 +145,7 @@ def adjust_ceres(model: SparseModel, R0: np.ndarray, t0: np.ndarray, X0: np.ndar
 
 
 def adjust_scipy(model: SparseModel, R0: np.ndarray, t0: np.ndarray, X0: np.ndarray, C_prior: np.ndarray,
-                 p: BAParams) -> BAResult:
+                 p: BAParams, extra_var_m2: np.ndarray | None = None) -> BAResult:
     from scipy.optimize import least_squares
     from scipy.sparse import coo_matrix
     from scipy.spatial.transform import Rotation
@@ -152,7 +162,7 @@ def adjust_scipy(model: SparseModel, R0: np.ndarray, t0: np.ndarray, X0: np.ndar
     C, P, K = len(R0), len(use_pts), len(img)
     C0 = -np.einsum("cba,cb->ca", R0, t0) - origin
     prior = C_prior - origin
-    sq = np.sqrt(p.lambda_)
+    sq = 1.0 / np.sqrt(prior_variances(len(C_prior), p, extra_var_m2))[:, None]
     cams = model.camera_ids[img]
     groups = [(model.cameras[int(c)], cams == c) for c in np.unique(cams)]
 

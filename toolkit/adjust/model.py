@@ -26,6 +26,15 @@ def registered_poses(model: SparseModel, reg: Registration) -> tuple[np.ndarray,
     return np.asarray(reg.R, np.float64)[idx], np.asarray(reg.t, np.float64)[idx]
 
 
+def registered_spread(model: SparseModel, reg: Registration) -> np.ndarray | None:
+    """(C,) the warp's transform spread at each camera (``Registration.camera_spread_m``) in the
+    model's image order, or None when the registration has none."""
+    if reg.camera_spread_m is None or len(reg.camera_spread_m) != len(reg.image_names):
+        return None
+    where = {n: i for i, n in enumerate(reg.image_names)}
+    return np.asarray(reg.camera_spread_m, np.float64)[[where[n] for n in model.image_names]]
+
+
 def warp_points3d(model: SparseModel, R_new: np.ndarray, t_new: np.ndarray) -> np.ndarray:
     """Move each 3D point with the pose change of the cameras observing it (mean over its track).
 

@@ -82,45 +82,49 @@ def segment_route_positions(seg_of_point: np.ndarray, sparse_s: np.ndarray, S: i
 
 def warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Scene, k: int, d_min: float,
                agree_tol_m: float = np.inf, agree_ratio: float = 0.0, max_gap_m: float = np.inf,
-               cell_m: float = 0.5, passes: PassCheck = PassCheck()) -> Registration:
+               cell_m: float = 0.5, passes: PassCheck = PassCheck(), relative: bool = False) -> Registration:
     with single_threaded_blas():
-        return _warp_scene(transforms, street, scene, k, d_min, agree_tol_m, agree_ratio, max_gap_m, cell_m, passes)
+        return _warp_scene(transforms, street, scene, k, d_min, agree_tol_m, agree_ratio, max_gap_m, cell_m, passes,
+                           relative)
 
 
 def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Scene, k: int, d_min: float,
                 agree_tol_m: float, agree_ratio: float, max_gap_m: float, cell_m: float,
-                passes: PassCheck) -> Registration:
+                passes: PassCheck, relative: bool) -> Registration:
     from toolkit.scene import load_points, load_sparse
 
     T = np.asarray(transforms.T, np.float64)
     valid = np.asarray(transforms.valid, bool)
-    index = SegmentIndex.build(street, transforms, max(k, 1), agree_tol_m=agree_tol_m, agree_ratio=agree_ratio,
-                               max_gap_m=max_gap_m)
     pts = load_points(scene, "street_cloud", "warp")
     xy = levelled_xy(street, pts)
     carrier = np.asarray(street.carrier, np.int64)
-    anchors = index.anchors(xy, carrier, valid)
     model = load_sparse(scene, "warp") if scene.has("sparse") else None
-    seg_of_point = segment_s = None
+    seg_of_point = segment_s = sparse_s = None
     if model is not None and len(model.points3d):
         seg_of_point = sparse_segments(model, pts, carrier, valid)
         if passes.pass_gap_m is not None:
             sparse_s = sparse_route_positions(model)
             segment_s = segment_route_positions(seg_of_point, sparse_s, len(street))
-            # only points that can be on another pass: anchored off their carrier, or on a segment
-            # next to sparse points of several passes (saves most of the 3.5 M nearest-sparse queries)
-            ok = (seg_of_point >= 0) & np.isfinite(sparse_s)
-            far = np.abs(sparse_s[ok] - segment_s[seg_of_point[ok]]) > passes.pass_gap_m
-            multi = np.bincount(seg_of_point[ok][far], minlength=len(street)) > 0
-            # (a point whose anchor has no route position is never re-anchored)
-            ask = np.flatnonzero(((anchors != carrier) | multi[anchors]) & np.isfinite(segment_s)[anchors])
-            point_s = point_route_positions(pts[ask], model.points3d, sparse_s, passes.max_gap_m)
-            anchors[ask] = reanchor_other_pass(anchors[ask], xy[ask], point_s, segment_s,
-                                               np.asarray(index.all_tree.data), index.all_seg,
-                                               passes.pass_gap_m, passes.route_scale)
-    moved = blend_points(pts, xy, anchors, T, index, k, d_min, cell_m)
+    # blending neighbours of one pass only (segment_s: None without the pass check)
+    index = SegmentIndex.build(street, transforms, max(k, 1), agree_tol_m=agree_tol_m, agree_ratio=agree_ratio,
+                               max_gap_m=max_gap_m, route_s=segment_s,
+                               route_gap_m=np.inf if passes.pass_gap_m is None else passes.pass_gap_m)
+    anchors = index.anchors(xy, carrier, valid)
+    if segment_s is not None:
+        # only points that can be on another pass: anchored off their carrier, or on a segment
+        # next to sparse points of several passes (saves most of the 3.5 M nearest-sparse queries)
+        ok = (seg_of_point >= 0) & np.isfinite(sparse_s)
+        far = np.abs(sparse_s[ok] - segment_s[seg_of_point[ok]]) > passes.pass_gap_m
+        multi = np.bincount(seg_of_point[ok][far], minlength=len(street)) > 0
+        # (a point whose anchor has no route position is never re-anchored)
+        ask = np.flatnonzero(((anchors != carrier) | multi[anchors]) & np.isfinite(segment_s)[anchors])
+        point_s = point_route_positions(pts[ask], model.points3d, sparse_s, passes.max_gap_m)
+        anchors[ask] = reanchor_other_pass(anchors[ask], xy[ask], point_s, segment_s,
+                                           np.asarray(index.all_tree.data), index.all_seg,
+                                           passes.pass_gap_m, passes.route_scale)
+    moved = blend_points(pts, xy, anchors, T, index, k, d_min, cell_m, relative=relative)
     names: tuple[str, ...] = ()
-    R, t = np.zeros((0, 3, 3)), np.zeros((0, 3))
+    R, t, spread = np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0)
     if model is not None and len(model.image_names):
         names = model.image_names
         C = model.centres
@@ -137,7 +141,8 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Sc
                 cam_anchor = reanchor_other_pass(cam_anchor, cxy, np.where(unseen, cam_s, np.nan), segment_s,
                                                  np.asarray(index.all_tree.data), index.all_seg,
                                                  passes.pass_gap_m, passes.route_scale)
-        pos, Rb = blend_rigid(C, cxy, cam_anchor, T, index, k, d_min)
+        pos, Rb, spread = blend_rigid(C, cxy, cam_anchor, T, index, k, d_min, relative)
         R = np.einsum("cab,cdb->cad", model.R, Rb)          # R_wc · R̄ᵀ
         t = -np.einsum("cab,cb->ca", R, pos)
-    return Registration(points=moved, image_names=names, R=R, t=t, point_segment=anchors.astype(np.int64, copy=False))
+    return Registration(points=moved, image_names=names, R=R, t=t, point_segment=anchors.astype(np.int64, copy=False),
+                        camera_spread_m=spread)

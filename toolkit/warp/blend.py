@@ -31,10 +31,17 @@ from toolkit.warp.cells import CellBlocks, cell_blocks
 from toolkit.warp.index import SegmentIndex
 
 
-def inverse_log_weights(d: np.ndarray, d_min: float) -> np.ndarray:
-    """w = 1/log(max(d, d_min)); requires d_min > 1 m."""
+def inverse_log_weights(d: np.ndarray, d_min: float, relative: bool = False) -> np.ndarray:
+    """w = 1/log(max(d, d_min)); requires d_min > 1 m.
+
+    relative: d (n, K) is first measured from each row's nearest segment, d − min_k d (a point on
+    a footprint is unchanged; a point far from every footprint, e.g. ground 40 m off the façades,
+    weighs its nearest segments like a point on them instead of all K nearly alike).
+    """
     if not d_min > 1.0:
         raise ValueError(f"d_min must exceed 1 m, got {d_min}")
+    if relative and d.ndim == 2 and d.shape[1]:
+        d = d - d.min(axis=1, keepdims=True)
     return 1.0 / np.log(np.maximum(d, d_min))
 
 
@@ -101,7 +108,7 @@ def point_distances(xy: np.ndarray, footprints: list[np.ndarray], chunk_elems: i
 
 
 def blended_affine(blocks: CellBlocks, T: np.ndarray, index: SegmentIndex, k: int, d_min: float,
-                   origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                   origin: np.ndarray, relative: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Per block: (U,3,3) A and (U,3) b with Σ_j w_j (R_j p + t_j − origin) / Σ_j w_j = A p + b.
 
     Weights are those of the cell centre: the distances to the footprints (themselves thinned to
@@ -117,7 +124,7 @@ def blended_affine(blocks: CellBlocks, T: np.ndarray, index: SegmentIndex, k: in
             continue
         dist = footprint_distances(blocks.cells_ij[blocks.cell[lo:hi]], blocks.cell_m,
                                    index.footprints(cand))
-        w = inverse_log_weights(dist, d_min)
+        w = inverse_log_weights(dist, d_min, relative)
         w /= w.sum(axis=1, keepdims=True)
         A[lo:hi] = np.einsum("uk,kab->uab", w, T[cand, :3, :3])
         b[lo:hi] = w @ (T[cand, :3, 3] - origin)
@@ -125,7 +132,8 @@ def blended_affine(blocks: CellBlocks, T: np.ndarray, index: SegmentIndex, k: in
 
 
 def blend_points(points: np.ndarray, xy: np.ndarray, anchors: np.ndarray, T: np.ndarray, index: SegmentIndex,
-                 k: int, d_min: float, cell_m: float = 0.5, chunk: int = 1 << 16) -> np.ndarray:
+                 k: int, d_min: float, cell_m: float = 0.5, chunk: int = 1 << 16,
+                 relative: bool = False) -> np.ndarray:
     """Σ_j w_j T_j(p) / Σ_j w_j over each point's anchor and its k neighbours (k = 0: no blending).
 
     The weights of a point are those of the centre of its ``cell_m`` cell (per anchor), so the
@@ -140,7 +148,7 @@ def blend_points(points: np.ndarray, xy: np.ndarray, anchors: np.ndarray, T: np.
     else:
         blocks = cell_blocks(xy, np.asarray(anchors, np.int64), cell_m)
         rows = blocks.rows
-        A, b = blended_affine(blocks, T, index, k, d_min, origin)
+        A, b = blended_affine(blocks, T, index, k, d_min, origin, relative)
     for s in range(0, len(points), chunk):
         r = rows[s:s + chunk]
         moved = out[s:s + chunk]
@@ -150,8 +158,10 @@ def blend_points(points: np.ndarray, xy: np.ndarray, anchors: np.ndarray, T: np.
 
 
 def blend_rigid(points: np.ndarray, xy: np.ndarray, anchors: np.ndarray, T: np.ndarray, index: SegmentIndex,
-                k: int, d_min: float) -> tuple[np.ndarray, np.ndarray]:
-    """Blended rigid transform at a few points (cameras): (M,3) new positions, (M,3,3) rotations."""
+                k: int, d_min: float, relative: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Blended rigid transform at a few points (cameras): (M,3) new positions, (M,3,3) rotations and
+    (M,) spread: the weighted RMS distance of the blended transforms' placements of each point from
+    its blended position (metres; 0 with a single transform), how much they disagree there."""
     M = len(points)
     K = k + 1
     cand = np.zeros((M, K), np.int64)
@@ -165,11 +175,12 @@ def blend_rigid(points: np.ndarray, xy: np.ndarray, anchors: np.ndarray, T: np.n
         cand[grp, :len(c)] = c
         cand[grp, len(c):] = c[0]
         if len(c) > 1:
-            w[grp, :len(c)] = inverse_log_weights(point_distances(xy[grp], index.footprints(c)), d_min)
+            w[grp, :len(c)] = inverse_log_weights(point_distances(xy[grp], index.footprints(c)), d_min, relative)
         else:
             w[grp, 0] = 1.0
     w /= w.sum(axis=1, keepdims=True)
     origin = T[index.valid, :3, 3].mean(axis=0)
     moved = np.einsum("mkab,mb->mka", T[cand, :3, :3], points) + (T[cand, :3, 3] - origin)
-    pos = np.einsum("mk,mka->ma", w, moved) + origin
-    return pos, average_rotations(T[cand, :3, :3], w)
+    pos = np.einsum("mk,mka->ma", w, moved)
+    spread = np.sqrt(np.einsum("mk,mk->m", w, ((moved - pos[:, None]) ** 2).sum(axis=2)))
+    return pos + origin, average_rotations(T[cand, :3, :3], w), spread

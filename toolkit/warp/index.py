@@ -53,11 +53,14 @@ class SegmentIndex:
 
     @classmethod
     def build(cls, street: StreetSegments, transforms: SegmentTransforms, k: int, cell_m: float = 1.0,
-              agree_tol_m: float = np.inf, agree_ratio: float = 0.0, max_gap_m: float = np.inf) -> SegmentIndex:
+              agree_tol_m: float = np.inf, agree_ratio: float = 0.0, max_gap_m: float = np.inf,
+              route_s: np.ndarray | None = None, route_gap_m: float = np.inf) -> SegmentIndex:
         """Neighbours: the k valid segments nearest (footprint to footprint, at most ``max_gap_m``
         apart) among the 3k nearest by centre whose transform agrees with the segment's own (gap at
-        both centres ≤ agree_tol_m + agree_ratio·d): after a loop the street frame puts segments of
-        another pass next to it, drifted away."""
+        both centres ≤ agree_tol_m + agree_ratio·d) and, given ``route_s`` ((S,) route position per
+        segment, NaN: unknown, never excluded), that were captured within ``route_gap_m`` of it along
+        the route: after a loop the street frame puts segments of another pass next to it, drifted
+        away (a few metres: the transform check alone lets those within its tolerance through)."""
         valid = np.flatnonzero(np.asarray(transforms.valid, bool))
         if len(valid) == 0:
             raise StageError("warp: no valid segment transform (refine registered nothing)")
@@ -79,6 +82,11 @@ class SegmentIndex:
         near = valid[cKDTree(cent).query(cent, k=n_near)[1].reshape(len(valid), n_near)]
         not_self = near != valid[:, None]
         owner, other = np.repeat(valid, n_near)[not_self.ravel()], near[not_self]
+        if route_s is not None and np.isfinite(route_gap_m) and len(owner):
+            s = np.asarray(route_s, np.float64)
+            with np.errstate(invalid="ignore"):
+                same_pass = ~(np.abs(s[owner] - s[other]) > route_gap_m)       # NaN: unknown, kept
+            owner, other = owner[same_pass], other[same_pass]
         if np.isfinite(agree_tol_m) and len(owner):
             anchors = input_anchors(street)
             disagree = gap_matrix(np.asarray(transforms.T, np.float64), anchors, np.column_stack([owner, other]))
