@@ -14,6 +14,7 @@ warp.inverse_log and warp.nearest, adjust.constrained_ba with pycolmap/Ceres (an
   also in CPU seconds (user + system, all threads), which drift less than wall seconds on a busy machine.
 
 usage: python bench/refine_warp_ba.py [SCENE ...] [--recipe dsm.yaml ...] [--scipy] [--icp] [--segments]
+       [--refine KEY=VALUE ...] [--warp KEY=VALUE ...] [--adjust KEY=VALUE ...]
        (default: data/campus if present else data/tiny; recipe dsm.yaml)
 """
 
@@ -173,7 +174,8 @@ def run(scene_dir: Path, recipe: str, args) -> None:
     noise = float(scene.manifest.get("synth", {}).get("config", {}).get("pixel_noise_px", float("nan")))
     print(f"  street points {len(inp)}, segments {len(street)} (matched {(matches.segment_match >= 0).sum()}), "
           f"rigid oracle mean 3D {rigid.mean():.3f} m, pixel noise {noise} px")
-    refiners = [Exhaustive.from_config(recipe_params(REPO / "recipes" / recipe, "refine", Exhaustive))] \
+    refine_params = {**recipe_params(REPO / "recipes" / recipe, "refine", Exhaustive), **_overrides(args.refine)}
+    refiners = [Exhaustive.from_config(refine_params)] \
         + ([IcpRefine()] if args.icp else [])
     for refiner in refiners:
         obs = NullObserver()
@@ -186,7 +188,7 @@ def run(scene_dir: Path, recipe: str, args) -> None:
             segment_report(matches, street, tr, scene, truth)
         border = border_mask(street, tr, scene, args.border_m)
         regs = {}
-        for warp in (InverseLog(), Nearest()):
+        for warp in (InverseLog.from_config(_overrides(args.warp)), Nearest()):
             t0, c0 = time.perf_counter(), time.process_time()
             reg = warp(tr, street, scene, NullObserver())
             t_warp = time.perf_counter() - t0
@@ -201,8 +203,9 @@ def run(scene_dir: Path, recipe: str, args) -> None:
             continue
         model = load_sparse(scene)
         C_true = truth_centres(scene, model.image_names)
-        adjusters = [NoAdjust(), ConstrainedBA()] + ([ConstrainedBA.from_config({"backend": "scipy"})]
-                                                     if args.scipy else [])
+        ba = _overrides(args.adjust)
+        adjusters = [NoAdjust(), ConstrainedBA.from_config(ba)] \
+            + ([ConstrainedBA.from_config({**ba, "backend": "scipy"})] if args.scipy else [])
         for adj in adjusters:
             t0 = time.perf_counter()
             out = adj(reg, scene, NullObserver())
@@ -219,6 +222,18 @@ def run(scene_dir: Path, recipe: str, args) -> None:
                 print(f"    refine + warp + BA: {t_refine + t_warp + t_adj:.1f} s", flush=True)
 
 
+def _overrides(pairs: list[str]) -> dict:
+    import yaml
+
+    out = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep:
+            raise SystemExit(f"expected KEY=VALUE, got {pair!r}")
+        out[key.strip()] = yaml.safe_load(value)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     default = REPO / "data" / ("campus" if (REPO / "data" / "campus" / "scene.yaml").is_file() else "tiny")
@@ -229,6 +244,12 @@ def main() -> None:
     ap.add_argument("--segments", action="store_true", help="per-segment transform errors")
     ap.add_argument("--border-m", type=float, default=5.0)
     ap.add_argument("--refresh", action="store_true", help="re-run the cached upstream stages")
+    ap.add_argument("--refine", action="append", default=[], metavar="KEY=VALUE",
+                    help="refine.exhaustive parameter over the recipe's (YAML value; repeatable), for sweeps")
+    ap.add_argument("--warp", action="append", default=[], metavar="KEY=VALUE",
+                    help="warp.inverse_log parameter (YAML value; repeatable), for sweeps")
+    ap.add_argument("--adjust", action="append", default=[], metavar="KEY=VALUE",
+                    help="adjust.constrained_ba parameter (YAML value; repeatable), for sweeps")
     args = ap.parse_args()
     for s in args.scenes:
         for r in args.recipe or ["dsm.yaml"]:
