@@ -66,9 +66,13 @@ def test_same_recipe_and_seed_give_identical_outputs(runs):
 
 
 def test_batch_on_local_cluster_matches_separate_runs(runs, tmp_path):
+    import os
+
     from toolkit.batch import run_batch
 
+    environ = dict(os.environ)
     rows = run_batch(RECIPE, [_tiny(0), _tiny(1)], tmp_path / "batch", workers=2, progress=False)
+    assert dict(os.environ) == environ  # the nanny's OMP_NUM_THREADS=1 stays with the workers
     assert [r["status"] for r in rows] == ["ok", "ok"], rows
     for row, label in zip(sorted(rows, key=lambda r: r["scene"]), ("a", "seed1")):
         scene_out = tmp_path / "batch" / row["scene"]
@@ -102,14 +106,18 @@ def _malloc_environ() -> dict:
 
 def test_local_cluster_workers_keep_glibc_adaptive_mmap_threshold():
     """Dask's default MALLOC_TRIM_THRESHOLD_ made every stage 1.4-1.8x slower in a worker."""
+    import os
+
     import dask
     from dask.distributed import Client, LocalCluster
 
-    from toolkit.batch import worker_config
+    from toolkit.batch import _restore_environ, worker_config
 
+    environ = dict(os.environ)
     with dask.config.set(worker_config()):
         cluster = LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None,
                                silence_logs=40)
+    _restore_environ(environ)  # the nanny wrote the workers' variables here too
     with cluster, Client(cluster) as client:
         env = client.submit(_malloc_environ, pure=False).result()
     assert env == {"MALLOC_TRIM_THRESHOLD_": None, "MALLOC_ARENA_MAX": "1", "OMP_NUM_THREADS": "1"}

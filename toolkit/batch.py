@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import csv
 import glob
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -109,6 +110,10 @@ def run_batch(recipe_path: Path, scenes: list[Path], out_root: Path, workers: in
         default_registry().get(spec.use).from_config(spec.params)
     out_root.mkdir(parents=True, exist_ok=True)
     cluster = None
+    # dask's nanny writes the workers' environment (OMP_NUM_THREADS=1, …) into this process's
+    # os.environ before it spawns them: without the restore, this process (and so everything it
+    # runs after the batch) is held to one thread
+    environ = dict(os.environ)
     if scheduler:
         client = Client(scheduler, timeout="10s")
     else:
@@ -117,6 +122,7 @@ def run_batch(recipe_path: Path, scenes: list[Path], out_root: Path, workers: in
         with dask.config.set(worker_config()):
             cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                    dashboard_address=None, silence_logs=40)
+        _restore_environ(environ)
         client = Client(cluster)
     rows: list[dict[str, Any]] = []
     try:
@@ -140,9 +146,19 @@ def run_batch(recipe_path: Path, scenes: list[Path], out_root: Path, workers: in
         client.close()
         if cluster is not None:
             cluster.close()
+        _restore_environ(environ)  # a worker the nanny restarted wrote it again
     rows.sort(key=lambda r: r["scene"])
     write_summary(out_root, rows)
     return rows
+
+
+def _restore_environ(saved: dict[str, str]) -> None:
+    """Put back the variables of ``saved`` (a copy of ``os.environ``) that were changed or added since."""
+    for key in [k for k in os.environ if k not in saved]:
+        del os.environ[key]
+    for key, value in saved.items():
+        if os.environ.get(key) != value:
+            os.environ[key] = value
 
 
 def write_summary(out_root: Path, rows: list[dict[str, Any]]) -> None:
