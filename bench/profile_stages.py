@@ -32,7 +32,7 @@ def _status_mb(field: str) -> float:
 
 def _cpu() -> float:
     """User + system seconds of this process and its finished children (the adjust step's Ceres
-    solve runs in a child process, ``toolkit.adjust.isolate``)."""
+    solve runs in a child process, ``toolkit.forked``)."""
     return sum(r.ru_utime + r.ru_stime for r in map(resource.getrusage, (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)))
 
 

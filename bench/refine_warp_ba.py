@@ -223,15 +223,10 @@ def run(scene_dir: Path, recipe: str, args) -> None:
 
 
 def _overrides(pairs: list[str]) -> dict:
-    import yaml
+    """KEY=VALUE pairs (YAML values) as stage parameters, parsed as the CLI's ``-s``."""
+    from toolkit.recipe import parse_override
 
-    out = {}
-    for pair in pairs:
-        key, sep, value = pair.partition("=")
-        if not sep:
-            raise SystemExit(f"expected KEY=VALUE, got {pair!r}")
-        out[key.strip()] = yaml.safe_load(value)
-    return out
+    return {".".join(key): value for key, value in map(parse_override, pairs)}
 
 
 def main() -> None:

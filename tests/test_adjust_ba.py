@@ -166,12 +166,12 @@ def test_gross_outlier_observations_are_removed_and_adjusted_again(tmp_path):
 
 
 def test_ceres_in_a_child_process_gives_the_same_bytes(small_problem, monkeypatch):
-    from toolkit.adjust.isolate import isolates
+    from toolkit.forked import forks
 
     model, reg, truth, scene = small_problem
     here_or_child = ConstrainedBA()(reg, scene, NullObserver())
     monkeypatch.setenv("OMP_NUM_THREADS", "1")  # one thread: the solve runs in this process
-    assert not isolates() and ConstrainedBA().holds_gil()  # so nothing is prefetched beside it
+    assert not forks() and ConstrainedBA().holds_gil()  # so nothing is prefetched beside it
     here = ConstrainedBA()(reg, scene, NullObserver())
     for a, b in ((here.model.R, here_or_child.model.R), (here.model.t, here_or_child.model.t),
                  (here.model.points3d, here_or_child.model.points3d)):

@@ -1,13 +1,14 @@
-"""toolkit.forked: independent jobs split between this process and forked children."""
+"""toolkit.forked: one call in a forked child, and independent jobs split between this process and children."""
 
 from __future__ import annotations
 
 import os
 
+import numpy as np
 import pytest
 
 import toolkit.forked as forked
-from toolkit.forked import can_fork, map_chunks_forked
+from toolkit.forked import can_fork, forks, map_chunks_forked, run_forked
 from toolkit.threads import thread_budget, thread_cap
 
 needs_two = pytest.mark.skipif(thread_budget() < 2 or not can_fork(), reason="needs two threads and fork")
@@ -73,3 +74,29 @@ def test_a_daemonic_process_like_a_dask_worker_maps_here():
     ran_here = queue.get(timeout=60)
     proc.join(timeout=60)
     assert ran_here and proc.exitcode == 0  # no "daemonic processes are not allowed to have children"
+
+
+def _pid_and_sum(a: np.ndarray) -> tuple[int, np.ndarray]:
+    return os.getpid(), np.cumsum(a) * 1.1
+
+
+def _fails(message: str) -> None:
+    raise ValueError(message)
+
+
+def test_run_forked_returns_the_same_bytes():
+    a = np.random.default_rng(0).normal(size=10_000)
+    pid, out = run_forked(_pid_and_sum, a)
+    assert out.tobytes() == _pid_and_sum(a)[1].tobytes()
+    assert (pid != os.getpid()) == forks()
+
+
+def test_run_forked_errors_come_back():
+    with pytest.raises(ValueError, match="no observations"):
+        run_forked(_fails, "no observations")
+
+
+def test_run_forked_with_one_thread_runs_here(monkeypatch):
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert not forks()
+    assert run_forked(_pid_and_sum, np.ones(3))[0] == os.getpid()

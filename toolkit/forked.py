@@ -1,11 +1,18 @@
-"""Split a list of independent jobs between this process and forked children.
+"""Work that keeps Python's GIL, run in forked children while this process goes on.
 
-For work that keeps Python's GIL (many small numpy calls per job, e.g. refine's per-segment
-searches), threads gain nothing; forked children run it on the other cores. A child starts with a
-copy of this process's memory (no inputs are pickled), runs its contiguous share of the jobs and
-sends back only the results, which are then in job order: the same list as one call over all jobs
-when ``fn`` treats each job independently. With a thread budget of one (batch workers), too few jobs
-or where this process may not fork (``can_fork``), everything runs here.
+Threads gain nothing on such work (many small numpy calls per job, e.g. refine's per-segment
+searches; or pycolmap's Ceres solve, which holds the GIL throughout), so it goes to a child forked
+from this process: the child starts in ~50 ms with every module imported (spawn would re-import
+numpy and pycolmap, ~0.6 s) and exits without this process's atexit handlers. It runs the same
+code on the same inputs, so the results are the same bytes.
+
+- ``run_forked(fn, *args)``: one call in a child (arguments and result pickled), leaving this
+  process free for other threads (the runner's prefetches, ``toolkit.overlap``).
+- ``map_chunks_forked(fn, jobs)``: independent jobs split between this process and children,
+  which inherit the jobs (nothing pickled on the way in) and send back results in job order.
+
+With a thread budget of one (batch workers) or where this process may not fork (``can_fork``),
+everything runs here.
 """
 
 from __future__ import annotations
@@ -15,7 +22,8 @@ import sys
 import threading
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
-from typing import Callable, Sequence, TypeVar
+from contextlib import contextmanager
+from typing import Any, Callable, Iterator, Sequence, TypeVar
 
 import numpy as np
 
@@ -41,6 +49,30 @@ def can_fork() -> bool:
     return sys.platform.startswith("linux") and not multiprocessing.current_process().daemon
 
 
+@contextmanager
+def _forked_pool(n: int) -> Iterator[ProcessPoolExecutor]:
+    """``n`` forked worker processes; a worker that dies (e.g. out of memory) raises RuntimeError."""
+    try:
+        with ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("fork")) as pool:
+            yield pool
+    except BrokenProcessPool as exc:
+        raise RuntimeError(f"a forked child process died ({exc})") from exc
+
+
+def forks() -> bool:
+    """Whether ``run_forked`` runs in a child here (a second thread, and ``can_fork``)."""
+    return thread_budget() >= 2 and can_fork()
+
+
+def run_forked(fn: Callable[..., R], *args: Any) -> R:
+    """``fn(*args)``, in a forked child process when ``forks()``. ``fn`` must be a module-level
+    function; its arguments and result are pickled. An exception raised by ``fn`` is raised here."""
+    if not forks():
+        return fn(*args)
+    with _forked_pool(1) as pool:
+        return pool.submit(fn, *args).result()
+
+
 def map_chunks_forked(fn: Callable[[list[T]], list[R]], jobs: Sequence[T], min_jobs: int = 32) -> list[R]:
     """``fn(jobs)``, where ``fn`` maps a list of jobs to a list of results (one each, in order),
     with the jobs split in contiguous chunks over the thread budget: the first chunks in forked
@@ -60,13 +92,10 @@ def map_chunks_forked(fn: Callable[[list[T]], list[R]], jobs: Sequence[T], min_j
     chunks = [jobs[a:b] for a, b in zip(bounds[:-1], bounds[1:])]
     _JOB = (fn, chunks)
     try:
-        with ProcessPoolExecutor(n - 1, mp_context=multiprocessing.get_context("fork")) as pool:
+        with _forked_pool(n - 1) as pool:
             futures = [pool.submit(_run_chunk, k) for k in range(n - 1)]
             last = fn(chunks[-1])
-            try:
-                done = [f.result() for f in futures]
-            except BrokenProcessPool as exc:
-                raise RuntimeError(f"a forked child process died ({exc})") from exc
+            done = [f.result() for f in futures]
     finally:
         _JOB = None
         _BUSY.release()

@@ -9,7 +9,7 @@ A stage can also start early with its ``prefetch``, the part of its work that ne
 of its inputs (``prefetch_inputs``), as soon as those are made (``Prefetcher``): the unary
 step's distance atlas (over-view only) is built while the street step runs, and the evaluation's
 Chamfer metrics and per-point errors run beside the bundle adjustment (whose Ceres solve runs in
-a child process, ``toolkit.adjust.isolate``), so only the camera errors wait for its poses.
+a child process, ``toolkit.forked``), so only the camera errors wait for its poses.
 
 The background step talks to a ``BufferedObserver``: its events (start, debug values, warnings,
 end) are replayed to the run's observer once both steps are done, so no observer is ever called
