@@ -1,7 +1,8 @@
 """Refine + warp + bundle adjustment on scene folders: accuracy against the truth and timings.
 
 The upstream stages (overview … match) of a recipe run once per scene and recipe and are cached
-(pickle under data/.bench-cache/, keyed by scene, step specs and the source of toolkit/ and plugins/); then, timed: refine.exhaustive with the recipe's refine parameters (and refine.icp with --icp),
+(pickle under data/.bench-cache/<code stamp>/, keyed by scene, step specs and the source of toolkit/ and
+plugins/; only the KEEP_STAMPS newest code stamps are kept); then, timed: refine.exhaustive with the recipe's refine parameters (and refine.icp with --icp),
 warp.inverse_log and warp.nearest, adjust.constrained_ba with pycolmap/Ceres (and scipy with
 --scipy), adjust.none. Printed per run:
 - per-point error vs truth/street_points.npy: horizontal median, 3D mean and p95; the best single
@@ -23,6 +24,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import pickle
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -38,6 +40,8 @@ from toolkit.runner import build
 from toolkit.scene import load_array, load_points, load_sparse
 
 UPSTREAM = ("overview", "street", "graph", "unary", "match")
+CACHE_ROOT = REPO / "data" / ".bench-cache"
+KEEP_STAMPS = 3
 
 
 def code_stamp() -> str:
@@ -64,7 +68,20 @@ def cache_path(plan, scene_dir: Path, kind: str) -> Path:
         return specs[k] + "|" + "|".join(key(d) for d in deps)
 
     h = hashlib.sha1((stamp + key(kind)).encode()).hexdigest()[:16]
-    return REPO / "data" / ".bench-cache" / f"{scene_dir.name}-{kind}-{h}.pkl"
+    return CACHE_ROOT / code_stamp() / f"{scene_dir.name}-{kind}-{h}.pkl"
+
+
+def prune_cache(current: Path, keep: int = KEEP_STAMPS) -> None:
+    """Delete the cache folders of all but the ``keep`` most recently used code stamps (``current``
+    among them): every code change starts a new folder, and the cache once grew to 24 GB."""
+    current.mkdir(parents=True, exist_ok=True)
+    current.touch()
+    stamps = sorted((d for d in CACHE_ROOT.iterdir() if d.is_dir()), key=lambda d: d.stat().st_mtime, reverse=True)
+    for old in stamps[keep:]:
+        if old != current:
+            shutil.rmtree(old, ignore_errors=True)
+    for loose in CACHE_ROOT.glob("*.pkl"):     # the flat layout of earlier versions
+        loose.unlink()
 
 
 def upstream(recipe_path: Path, scene_dir: Path, refresh: bool) -> dict:
@@ -77,6 +94,7 @@ def upstream(recipe_path: Path, scene_dir: Path, refresh: bool) -> dict:
         if spec.name not in UPSTREAM:
             continue
         cache = cache_path(plan, scene_dir, spec.name)
+        prune_cache(cache.parent)
         if cache.is_file() and not refresh:
             with open(cache, "rb") as fh:
                 results[KIND_OUTPUT[spec.name]] = pickle.load(fh)

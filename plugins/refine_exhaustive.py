@@ -107,6 +107,11 @@ class Exhaustive(Stage):
             0, ge=0, description="Joint pass: at most this many footprint points (0.5 m cells) per segment in the joint "
                                  "footprint, so that a few long walls do not outweigh the other buildings' independent "
                                  "outline errors (0: all).")
+        joint_outline_points: int = Field(
+            0, ge=0, description="Joint pass: at most this many footprint points (0.5 m cells) per over-view outline "
+                                 "(the outline nearest to each point under its segment's own transform), so that "
+                                 "each building's own outline error counts about once however much of its wall "
+                                 "was seen (0: all).")
         joint_kernel: Literal["box", "tricube"] = Field(
             "box", description="Joint pass: 'box' takes every segment within the window in full; 'tricube' keeps a "
                                "share (1 − (Δs/window)³)³ of each segment's points by its route distance Δs, so that "
@@ -276,6 +281,7 @@ class Exhaustive(Stage):
                          rotation_step_deg=min(0.5, p.rotation_step_deg), shift_m=p.joint_shift_m,
                          cell_m=2 * p.footprint_cell_m, max_points=p.max_footprint_points,
                          truncate_m=p.truncate_m, inlier_m=p.inlier_m, segment_points=p.joint_segment_points,
+                         outline_points=p.joint_outline_points,
                          kernel=p.joint_kernel)
         idx = np.flatnonzero(valid & np.isfinite(st.route_s))
         fps = {int(i): pts.footprint(i, p.footprint_cell_m, p.max_footprint_points) for i in idx}

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from toolkit.refine.joint import JointParams, joint_footprint, joint_transforms
+from toolkit.refine.joint import JointParams, OutlineLabels, cap_per_label, joint_footprint, joint_transforms
 from toolkit.refine.transforms import rigid2d
 from toolkit.types import Grid
 
@@ -111,4 +111,42 @@ def test_joint_tricube_window_still_averages_out_outline_errors():
     own = np.stack([rigid2d(0.0, shifts[i]) @ T_true for i in fps])
     joint = joint_transforms(fps, own, route, centres, grid, label,
                              JointParams(window_m=120.0, kernel="tricube"))
+    assert np.median(_centre_errors(joint, T_true, fps)) < 0.65 * np.median(_centre_errors(own, T_true, fps))
+
+
+def test_outline_labels_name_the_nearest_outline():
+    grid = Grid((1.0, 0.0, 0.0, 0.0, -1.0, 20.0), 40, 20, "EPSG:32617")
+    label = -np.ones((20, 40), np.int32)
+    label[5:15, 2:12] = 3          # x 2..12 m, y 5..15 m
+    label[5:15, 25:35] = 7         # x 25..35 m
+    xy = np.array([[2.1, 10.0], [12.4, 10.0], [17.0, 10.0], [19.0, 10.0], [30.0, 16.0]])
+    assert OutlineLabels(grid, label)(xy).tolist() == [3, 3, 3, 7, 7]
+    assert OutlineLabels(grid, -np.ones((20, 40), np.int32))(xy).tolist() == [-1] * 5
+
+
+def test_cap_per_label_keeps_an_even_stride_of_each_large_group():
+    pts = np.arange(20.0)[:, None] * [1.0, 0.0]
+    labels = np.array([0] * 12 + [1] * 3 + [2] * 5)
+    out = cap_per_label(pts, labels, 4)
+    assert out[:, 0].tolist() == [0.0, 3.0, 7.0, 11.0, 12.0, 13.0, 14.0, 15.0, 16.0, 17.0, 19.0]
+
+
+def test_joint_footprint_outline_cap_counts_each_outline_once_across_segments():
+    # two segments on one long building (outline 0) and a short one on another (outline 1)
+    fps = {0: _wall(0.0, 60.0), 1: _wall(60.0, 60.0), 2: _wall(200.0, 10.0)}
+    labels = {0: np.zeros(120, np.int64), 1: np.zeros(120, np.int64), 2: np.ones(20, np.int64)}
+    near, ds = np.array([0, 1, 2]), np.zeros(3)
+    p = JointParams(window_m=100.0, cell_m=0.5, kernel="tricube", outline_points=40)
+    out = joint_footprint(fps, near, ds, p, labels)
+    assert ((out[:, 0] < 150).sum(), (out[:, 0] > 150).sum()) == (40, 20)
+    assert out[:, 0][out[:, 0] < 150].max() > 100          # spread over both segments of the building
+    uncapped = joint_footprint(fps, near, ds, JointParams(window_m=100.0, cell_m=0.5, kernel="tricube"), labels)
+    assert len(uncapped) == 260
+
+
+def test_joint_outline_cap_still_averages_out_outline_errors():
+    grid, label, fps, T_true, route, centres, shifts = _street(1)
+    own = np.stack([rigid2d(0.0, shifts[i]) @ T_true for i in fps])
+    joint = joint_transforms(fps, own, route, centres, grid, label,
+                             JointParams(window_m=120.0, kernel="tricube", outline_points=40))
     assert np.median(_centre_errors(joint, T_true, fps)) < 0.65 * np.median(_centre_errors(own, T_true, fps))

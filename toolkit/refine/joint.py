@@ -46,31 +46,72 @@ class JointParams:
     segment_points: int = 0          # at most this many thinned footprint points per segment (0: all)
     kernel: str = "box"              # "box": every segment in the window in full; "tricube": a share of its
                                      # points falling with its route distance, (1 − (Δs/window)³)³
+    outline_points: int = 0          # at most this many thinned points per over-view outline (0: all)
+
+
+class OutlineLabels:
+    """The over-view segment whose outline is nearest to a scene point (KD-tree over the labelled
+    pixels that touch another label or the background)."""
+
+    def __init__(self, grid: Grid, label_image: np.ndarray) -> None:
+        from scipy.spatial import cKDTree
+
+        lab = np.asarray(label_image)
+        pad = np.pad(lab, 1, mode="constant", constant_values=-1)
+        edge = (lab >= 0) & ((pad[:-2, 1:-1] != lab) | (pad[2:, 1:-1] != lab)
+                             | (pad[1:-1, :-2] != lab) | (pad[1:-1, 2:] != lab))
+        rows, cols = np.nonzero(edge)
+        self.label = lab[rows, cols]
+        self.tree = cKDTree(grid.pixel_to_world(rows, cols)) if len(rows) else None
+
+    def __call__(self, xy: np.ndarray) -> np.ndarray:
+        if self.tree is None or len(xy) == 0:
+            return np.full(len(xy), -1, np.int64)
+        return self.label[self.tree.query(xy)[1]].astype(np.int64)
+
+
+def cap_per_label(points: np.ndarray, labels: np.ndarray, cap: int) -> np.ndarray:
+    """At most ``cap`` of ``points`` per label (an even stride, deterministic), in their order."""
+    keep = np.ones(len(points), bool)
+    uniq, inverse, counts = np.unique(labels, return_inverse=True, return_counts=True)
+    for u in np.flatnonzero(counts > cap):
+        rows = np.flatnonzero(inverse == u)
+        keep[rows] = False
+        keep[rows[np.linspace(0, len(rows) - 1, cap).astype(np.int64)]] = True
+    return points[keep]
 
 
 def joint_footprint(footprints: dict[int, np.ndarray], near: np.ndarray, ds_m: np.ndarray,
-                    p: JointParams) -> np.ndarray:
+                    p: JointParams, labels: dict[int, np.ndarray] | None = None) -> np.ndarray:
     """The footprints of segments ``near`` (route distances ``ds_m`` from the segment searched) as one
     point set: each thinned to ``p.cell_m``, at most ``p.segment_points`` points per segment (so that
     a few long walls do not outweigh the other buildings' independent outline errors), a share
     ``(1 − (Δs/window)³)³`` of them under the tricube kernel (every segment keeps at least one point),
-    taken by an even stride (deterministic); then at most ``p.max_points`` in all."""
-    parts = []
+    taken by an even stride (deterministic); with ``labels`` (per segment, the nearest over-view
+    outline of each point of its thinned footprint), at most ``p.outline_points`` per outline; then at
+    most ``p.max_points`` in all."""
+    parts, part_labels = [], []
     for j, ds in zip(near, ds_m):
         f = footprints[int(j)]
-        if p.segment_points <= 0 and p.kernel == "box":
+        if p.segment_points <= 0 and p.kernel == "box" and labels is None:
             parts.append(f)
             continue
         f = thin_xy(f, p.cell_m, len(f))
+        lab = labels[int(j)] if labels is not None else None
         n = len(f) if p.segment_points <= 0 else min(len(f), p.segment_points)
         if p.kernel == "tricube":
             n = int(np.ceil(n * (1.0 - min(1.0, abs(float(ds)) / p.window_m) ** 3) ** 3))
         elif p.kernel != "box":
             raise ValueError(f"unknown joint kernel {p.kernel!r}")
         if n < len(f):
-            f = f[np.linspace(0, len(f) - 1, max(n, 1)).astype(np.int64)]
+            rows = np.linspace(0, len(f) - 1, max(n, 1)).astype(np.int64)
+            f, lab = f[rows], (lab[rows] if lab is not None else None)
         parts.append(f)
-    return thin_xy(np.concatenate(parts), p.cell_m, p.max_points)
+        part_labels.append(lab)
+    joint = np.concatenate(parts)
+    if labels is not None and p.outline_points > 0:
+        joint = cap_per_label(joint, np.concatenate(part_labels), p.outline_points)
+    return thin_xy(joint, p.cell_m, p.max_points)
 
 
 def joint_transforms(footprints: dict[int, np.ndarray], T2d: np.ndarray, route_s: np.ndarray,
@@ -85,11 +126,16 @@ def joint_transforms(footprints: dict[int, np.ndarray], T2d: np.ndarray, route_s
     out = np.array(T2d, np.float64, copy=True)
     outlines = outlines if outlines is not None else AllOutlines(grid, label_image, p.truncate_m)
     r = int(np.ceil(p.shift_m / grid.gsd_m))
+    labels = None
+    if p.outline_points > 0:        # each segment's points by the outline they lie on under its own transform
+        nearest_outline = OutlineLabels(grid, label_image)
+        labels = {int(j): nearest_outline(thin_xy(footprints[int(j)], p.cell_m, len(footprints[int(j)]))
+                                          @ T2d[j][:2, :2].T + T2d[j][:2, 2]) for j in idx}
     searched, problems = [], []
     for i in idx:
         near = idx[(np.abs(route_s[idx] - route_s[i]) <= p.window_m)
                    & (np.linalg.norm(anchors_xy[idx] - anchors_xy[i], axis=1) <= 2 * p.window_m)]
-        fp = joint_footprint(footprints, near, route_s[near] - route_s[i], p)
+        fp = joint_footprint(footprints, near, route_s[near] - route_s[i], p, labels)
         if len(fp) < 10:
             continue
         centre = column_means(fp @ T2d[i][:2, :2].T + T2d[i][:2, 2])
