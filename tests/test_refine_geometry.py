@@ -378,3 +378,45 @@ def test_vectorised_consistency_scores_match_a_per_segment_loop():
         gaps = gap_matrix(T, street, np.column_stack([np.full(len(nb), i), nb]))
         ref = np.percentile(gaps / (3.0 + 0.05 * np.linalg.norm(street[nb] - street[i], axis=1)), 50, method="lower")
         assert score[i] == pytest.approx(ref)
+
+
+def test_route_position_comes_from_the_facade_not_the_ground_it_carries(tmp_path):
+    """Where the route loops back, the later pass's ground is carried by the earlier pass's façade
+    next to it: the segment's route position is still where its façade was seen; a segment without
+    a façade point near a sparse one takes its position from what it carries."""
+    from toolkit.io.cloud import write_ply
+    from toolkit.io.colmap import write_model
+    from toolkit.refine.route import route_positions
+    from toolkit.scene import load_scene, write_manifest
+    from toolkit.types import Camera, SparseModel, StreetSegments
+
+    rng = np.random.default_rng(3)
+    facade0 = np.column_stack([rng.uniform(0, 10, 100), np.full(100, 5.0), rng.uniform(0, 5, 100)])
+    ground0 = np.column_stack([rng.uniform(0, 10, 300), rng.uniform(0, 4, 300), np.zeros(300)])
+    facade1 = np.column_stack([rng.uniform(40, 50, 100), np.full(100, 5.0), rng.uniform(0, 5, 100)])
+    ground1 = np.column_stack([rng.uniform(40, 50, 100), rng.uniform(0, 4, 100), np.zeros(100)])
+    pts = np.vstack([facade0, ground0, facade1, ground1])
+    labels = np.concatenate([np.zeros(100), np.full(300, -1), np.ones(100), np.full(100, -1)]).astype(np.int32)
+    carrier = np.concatenate([np.zeros(400), np.ones(200)]).astype(np.int32)
+    C = np.column_stack([np.r_[np.linspace(0, 50, 51), np.linspace(50, 0, 51)], np.zeros(102), np.zeros(102)])
+    # segment 0: 5 façade points seen at s = 5 m, 20 of its ground points seen again at s ≈ 95 m;
+    # segment 1: only ground points near sparse ones, seen at s = 45 m
+    sparse_rows = np.r_[0:5, 100:120, 500:510]
+    cam_of = np.r_[np.full(5, 5), np.full(20, 96), np.full(10, 45)]
+    obs = np.array([[c + k, j, 100.0, 100.0] for j, c in enumerate(cam_of) for k in (0, 1)])
+    model = SparseModel(cameras={1: Camera(1, "PINHOLE", 640, 480, np.array([500.0, 500, 320, 240]))},
+                        image_names=tuple(f"{k}.jpg" for k in range(102)), image_ids=np.arange(1, 103),
+                        camera_ids=np.ones(102, int), R=np.repeat(np.eye(3)[None], 102, axis=0), t=-C,
+                        points3d_ids=np.arange(1, len(sparse_rows) + 1), points3d=pts[sparse_rows],
+                        points3d_rgb=np.zeros((len(sparse_rows), 3), np.uint8), observations=obs.astype(float))
+    root = tmp_path / "route"
+    (root / "street").mkdir(parents=True)
+    write_ply(root / "street/cloud.ply", pts)
+    write_model(model, root / "street/sparse", binary=True)
+    write_manifest(root, "route", "EPSG:32617", {"street": {"cloud": "street/cloud.ply", "sparse": "street/sparse"}})
+    street = StreetSegments(origin=np.zeros(3), up_rotation=np.eye(3), point_labels=labels, carrier=carrier,
+                            ids=np.arange(2), boundary_xy=(facade0[:, :2], facade1[:, :2]),
+                            centroids=np.array([[5.0, 5.0], [45.0, 5.0]]), extent_m=np.full(2, 10.0),
+                            ground_z=np.zeros(2), ground_normal=np.tile([0, 0, 1.0], (2, 1)))
+    s = route_positions(street, load_scene(root), pts)
+    assert np.allclose(s, [5.5, 45.5], atol=1.0), s

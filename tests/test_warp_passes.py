@@ -113,3 +113,39 @@ def test_cameras_of_the_other_pass_follow_a_segment_of_their_own_pass(tmp_path, 
     assert centre_err(off)[20:].max() > 10.0       # without the check some last-pass camera is 12 m off
     assert centre_err(on)[20:].max() < 1e-6
     assert centre_err(on)[:20].max() < 1e-6        # the first pass keeps segment 0's transform
+
+
+def test_points_without_a_sparse_point_near_them_take_their_carriers_pass(tmp_path):
+    """A last-pass façade (segment 2) left unregistered lies next to a first-pass one (segment 0) in
+    the street frame. Its ground has no sparse point within reach, so its own route position is
+    unknown: it is of its carrier's pass, and follows segment 1 (last pass), not segment 0."""
+    rng = np.random.default_rng(2)
+    first = np.column_stack([rng.uniform(0, 20, 300), np.full(300, 8.0), rng.uniform(4, 8, 300)])
+    last = np.column_stack([rng.uniform(0, 20, 300), np.full(300, 2.0), rng.uniform(4, 8, 300)])
+    unreg = np.column_stack([rng.uniform(0, 20, 300), np.full(300, 7.0), rng.uniform(4, 8, 300)])
+    ground = np.column_stack([rng.uniform(0, 20, 300), rng.uniform(6.0, 7.0, 300), np.zeros(300)])
+    pts = np.vstack([first, last, unreg, ground])
+    labels = np.repeat(np.array([0, 1, 2, -1], np.int32), 300)
+    carrier = np.repeat(np.array([0, 1, 2, 2], np.int32), 300)
+    street = StreetSegments(
+        origin=np.zeros(3), up_rotation=np.eye(3), point_labels=labels, carrier=carrier, ids=np.arange(3),
+        boundary_xy=(first[:, :2], last[:, :2], unreg[:, :2]), centroids=np.array([[10.0, 8.0], [10.0, 2.0], [10.0, 7.0]]),
+        extent_m=np.full(3, 20.0), ground_z=np.zeros(3), ground_normal=np.tile([0, 0, 1.0], (3, 1)))
+    cam = np.vstack([np.column_stack([np.arange(20.0), np.full(20, 4.0), np.full(20, 1.5)]),
+                     [[500.0, 500.0, 1.5]],
+                     np.column_stack([np.arange(20.0), np.full(20, 4.0), np.full(20, 1.5)])])
+    seen = np.concatenate([rng.choice(300, 40, replace=False), 300 + rng.choice(600, 80, replace=False)])
+    obs = [[c, p, 100.0, 100.0] for p, row in enumerate(seen)
+           for c in rng.choice(20, 3, replace=False) + (0 if row < 300 else 21)]
+    root = tmp_path / "unreg"
+    (root / "street").mkdir(parents=True)
+    write_ply(root / "street/cloud.ply", pts)
+    write_model(_model(cam, pts[seen], np.array(obs, float)), root / "street/sparse")
+    write_manifest(root, "unreg", "EPSG:32617", {"street": {"cloud": "street/cloud.ply", "sparse": "street/sparse"}})
+    T = np.repeat(np.eye(4)[None], 3, axis=0)
+    T[1:, :3, 3] = [0.0, 12.0, 0.0]
+    tr = SegmentTransforms(T=T, valid=np.array([True, True, False]), cost=np.zeros(3), confidence=np.ones(3))
+    reg = Nearest()(tr, street, load_scene(root), NullObserver())
+    assert (reg.point_segment[900:] == 1).all()                    # the unregistered segment's ground
+    assert np.allclose(reg.points[900:], pts[900:] + [0.0, 12.0, 0.0])
+    assert (reg.point_segment[:300] == 0).all()

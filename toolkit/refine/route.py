@@ -5,7 +5,11 @@ between, so segments of the two passes sit next to each other in it while their 
 rightly differ. Neighbour searches therefore use keys (x, y, z, s): the segment's centre plus its
 position s along the route (metres travelled by the cameras that observe it), which keeps the two
 passes apart. s is the median, over the segment's observations, of the observing camera's route
-position; a sparse point belongs to the segment carrying the dense point next to it.
+position; a sparse point belongs to the segment whose façade point is next to it (the façade is what
+registers the segment), else, for a segment with no façade point near a sparse one, to the segment
+carrying the dense point next to it. Carried ground points alone can mislead: where the route
+loops back, the ground of the later pass is carried by the earlier pass's façades next to it (campus
+seed 6: a façade seen at 0-100 m along the route had s = 1448 m from the ground it carries).
 """
 
 from __future__ import annotations
@@ -26,13 +30,16 @@ def camera_route_positions(model: SparseModel) -> np.ndarray:
 
 
 def sparse_segments(model: SparseModel, dense: np.ndarray, carrier: np.ndarray, valid: np.ndarray,
-                    max_gap_m: float = 1.0) -> np.ndarray:
-    """(P,) valid carrier segment of the dense point next to each sparse point (−1: none within max_gap_m)."""
+                    max_gap_m: float = 1.0, only: np.ndarray | None = None) -> np.ndarray:
+    """(P,) valid carrier segment of the dense point next to each sparse point (−1: none within
+    max_gap_m); ``only``: (N,) bool, the dense points considered (e.g. façade points)."""
     out = np.full(len(model.points3d), -1, np.int64)
     if len(model.points3d) == 0:
         return out
     ok = (carrier >= 0)
     ok[ok] = valid[carrier[ok]]
+    if only is not None:
+        ok &= only
     idx = np.flatnonzero(ok)
     if len(idx) == 0:
         return out
@@ -57,17 +64,21 @@ def route_positions(street: StreetSegments, scene: Scene, dense: np.ndarray, max
     if len(model.observations) == 0 or len(model.image_names) < 2:
         return out
     carrier = np.asarray(street.carrier, np.int64)
-    seg_of_point = sparse_segments(model, dense, carrier, np.ones(S, bool), max_gap_m)
     s_cam = camera_route_positions(model)
     img = model.observations[:, 0].astype(np.int64)
-    seg = seg_of_point[model.observations[:, 1].astype(np.int64)]
-    keep = seg >= 0
-    order = np.lexsort((s_cam[img[keep]], seg[keep]))
-    segs, s_sorted = seg[keep][order], s_cam[img[keep]][order]
-    bounds = np.searchsorted(segs, np.arange(S + 1))
-    for i in range(S):
-        if bounds[i + 1] > bounds[i]:
+    facade = np.asarray(street.point_labels) >= 0
+    for only in (facade, None):        # façade points first; the rest from every carried point
+        todo = ~np.isfinite(out)
+        seg_of_point = sparse_segments(model, dense, carrier, np.ones(S, bool), max_gap_m, only=only)
+        seg = seg_of_point[model.observations[:, 1].astype(np.int64)]
+        keep = seg >= 0
+        order = np.lexsort((s_cam[img[keep]], seg[keep]))
+        segs, s_sorted = seg[keep][order], s_cam[img[keep]][order]
+        bounds = np.searchsorted(segs, np.arange(S + 1))
+        for i in np.flatnonzero(todo & (bounds[1:] > bounds[:-1])):
             out[i] = float(np.median(s_sorted[bounds[i]:bounds[i + 1]]))
+        if np.isfinite(out).all():
+            break
     return out
 
 

@@ -104,7 +104,13 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Sc
         seg_of_point = sparse_segments(model, pts, carrier, valid)
         if passes.pass_gap_m is not None:
             sparse_s = sparse_route_positions(model)
-            segment_s = segment_route_positions(seg_of_point, sparse_s, len(street))
+            # a segment is where its façade was captured (toolkit.refine.route), else where what it carries was
+            # (every segment, registered or not: a point carried by an unregistered one takes its pass below)
+            facade = sparse_segments(model, pts, carrier, np.ones(len(street), bool),
+                                     only=np.asarray(street.point_labels) >= 0)
+            segment_s = segment_route_positions(facade, sparse_s, len(street))
+            unknown = ~np.isfinite(segment_s)
+            segment_s[unknown] = segment_route_positions(seg_of_point, sparse_s, len(street))[unknown]
     # blending neighbours of one pass only (segment_s: None without the pass check)
     index = SegmentIndex.build(street, transforms, max(k, 1), agree_tol_m=agree_tol_m, agree_ratio=agree_ratio,
                                max_gap_m=max_gap_m, route_s=segment_s,
@@ -119,6 +125,11 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Sc
         # (a point whose anchor has no route position is never re-anchored)
         ask = np.flatnonzero(((anchors != carrier) | multi[anchors]) & np.isfinite(segment_s)[anchors])
         point_s = point_route_positions(pts[ask], model.points3d, sparse_s, passes.max_gap_m)
+        # no sparse point near it: the point was captured on its carrier's pass (campus seed 5, label
+        # map: 35 k points of the route's last metres, their carrier unregistered, had been left on
+        # the nearest segment, of the first pass, 21 m off)
+        unknown = ~np.isfinite(point_s) & (carrier[ask] >= 0)
+        point_s[unknown] = segment_s[carrier[ask][unknown]]
         anchors[ask] = reanchor_other_pass(anchors[ask], xy[ask], point_s, segment_s,
                                            np.asarray(index.all_tree.data), index.all_seg,
                                            passes.pass_gap_m, passes.route_scale)

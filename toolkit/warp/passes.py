@@ -12,7 +12,8 @@ it, within ``max_gap_m``) is compared with its anchor segment's route position
 (``toolkit.refine.route``); a point farther than ``pass_gap_m`` along the route from its anchor is
 re-anchored on the nearest valid segment of its own pass (nearest by footprint distance, with the
 route distance as a third coordinate scaled by ``route_scale`` so another pass is never nearer).
-Points with no sparse point near them keep their anchor.
+A segment's route position is where its façade was seen (``toolkit.refine.route``); a point with no
+sparse point near it takes its carrier's (the façade segment nearest to it, registered or not).
 """
 
 from __future__ import annotations
