@@ -21,6 +21,7 @@ import numpy as np
 
 from toolkit.refine.blas import single_threaded_blas
 from toolkit.refine.route import camera_route_positions, sparse_segments
+from toolkit.threads import map_in_order
 from toolkit.types import Registration, Scene, SegmentTransforms, SparseModel, StreetSegments
 from toolkit.warp.blend import SegmentIndex, blend_points, blend_rigid
 from toolkit.warp.cells import levelled_xy
@@ -101,14 +102,18 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Sc
     model = load_sparse(scene, "warp") if scene.has("sparse") else None
     seg_of_point = segment_s = sparse_s = None
     if model is not None and len(model.points3d):
-        seg_of_point = sparse_segments(model, pts, carrier, valid)
+        # the sparse points' segments among the valid carriers (camera anchors) and, for the pass check,
+        # among every segment's façade points: a segment is where its façade was captured
+        # (toolkit.refine.route), registered or not (a point carried by an unregistered segment takes
+        # its pass below). The two searches overlap in threads (their tree builds release the GIL).
+        searches = [{"valid": valid}]
+        if passes.pass_gap_m is not None:
+            searches.append({"valid": np.ones(len(street), bool), "only": np.asarray(street.point_labels) >= 0})
+        found = list(map_in_order(lambda kw: sparse_segments(model, pts, carrier, **kw), searches))
+        seg_of_point = found[0]
         if passes.pass_gap_m is not None:
             sparse_s = sparse_route_positions(model)
-            # a segment is where its façade was captured (toolkit.refine.route), else where what it carries was
-            # (every segment, registered or not: a point carried by an unregistered one takes its pass below)
-            facade = sparse_segments(model, pts, carrier, np.ones(len(street), bool),
-                                     only=np.asarray(street.point_labels) >= 0)
-            segment_s = segment_route_positions(facade, sparse_s, len(street))
+            segment_s = segment_route_positions(found[1], sparse_s, len(street))
             unknown = ~np.isfinite(segment_s)
             segment_s[unknown] = segment_route_positions(seg_of_point, sparse_s, len(street))[unknown]
     # blending neighbours of one pass only (segment_s: None without the pass check)
