@@ -73,7 +73,7 @@ class OutlineLabels:
 def cap_per_label(points: np.ndarray, labels: np.ndarray, cap: int) -> np.ndarray:
     """At most ``cap`` of ``points`` per label (an even stride, deterministic), in their order."""
     keep = np.ones(len(points), bool)
-    uniq, inverse, counts = np.unique(labels, return_inverse=True, return_counts=True)
+    _, inverse, counts = np.unique(labels, return_inverse=True, return_counts=True)
     for u in np.flatnonzero(counts > cap):
         rows = np.flatnonzero(inverse == u)
         keep[rows] = False
