@@ -82,21 +82,23 @@ def cap_per_label(points: np.ndarray, labels: np.ndarray, cap: int) -> np.ndarra
 
 
 def joint_footprint(footprints: dict[int, np.ndarray], near: np.ndarray, ds_m: np.ndarray,
-                    p: JointParams, labels: dict[int, np.ndarray] | None = None) -> np.ndarray:
+                    p: JointParams, labels: dict[int, np.ndarray] | None = None,
+                    thinned: bool = False) -> np.ndarray:
     """The footprints of segments ``near`` (route distances ``ds_m`` from the segment searched) as one
     point set: each thinned to ``p.cell_m``, at most ``p.segment_points`` points per segment (so that
     a few long walls do not outweigh the other buildings' independent outline errors), a share
     ``(1 − (Δs/window)³)³`` of them under the tricube kernel (every segment keeps at least one point),
     taken by an even stride (deterministic); with ``labels`` (per segment, the nearest over-view
     outline of each point of its thinned footprint), at most ``p.outline_points`` per outline; then at
-    most ``p.max_points`` in all."""
+    most ``p.max_points`` in all. ``thinned``: the footprints are already thinned to ``p.cell_m``."""
     parts, part_labels = [], []
     for j, ds in zip(near, ds_m):
         f = footprints[int(j)]
         if p.segment_points <= 0 and p.kernel == "box" and labels is None:
             parts.append(f)
             continue
-        f = thin_xy(f, p.cell_m, len(f))
+        if not thinned:
+            f = thin_xy(f, p.cell_m, len(f))
         lab = labels[int(j)] if labels is not None else None
         n = len(f) if p.segment_points <= 0 else min(len(f), p.segment_points)
         if p.kernel == "tricube":
@@ -126,16 +128,18 @@ def joint_transforms(footprints: dict[int, np.ndarray], T2d: np.ndarray, route_s
     out = np.array(T2d, np.float64, copy=True)
     outlines = outlines if outlines is not None else AllOutlines(grid, label_image, p.truncate_m)
     r = int(np.ceil(p.shift_m / grid.gsd_m))
+    thinned = p.segment_points > 0 or p.kernel != "box" or p.outline_points > 0
+    if thinned:                     # once per segment, not once per window it falls in
+        footprints = {int(j): thin_xy(footprints[int(j)], p.cell_m, len(footprints[int(j)])) for j in idx}
     labels = None
     if p.outline_points > 0:        # each segment's points by the outline they lie on under its own transform
         nearest_outline = OutlineLabels(grid, label_image)
-        labels = {int(j): nearest_outline(thin_xy(footprints[int(j)], p.cell_m, len(footprints[int(j)]))
-                                          @ T2d[j][:2, :2].T + T2d[j][:2, 2]) for j in idx}
+        labels = {int(j): nearest_outline(footprints[int(j)] @ T2d[j][:2, :2].T + T2d[j][:2, 2]) for j in idx}
     searched, problems = [], []
     for i in idx:
         near = idx[(np.abs(route_s[idx] - route_s[i]) <= p.window_m)
                    & (np.linalg.norm(anchors_xy[idx] - anchors_xy[i], axis=1) <= 2 * p.window_m)]
-        fp = joint_footprint(footprints, near, route_s[near] - route_s[i], p, labels)
+        fp = joint_footprint(footprints, near, route_s[near] - route_s[i], p, labels, thinned)
         if len(fp) < 10:
             continue
         centre = column_means(fp @ T2d[i][:2, :2].T + T2d[i][:2, 2])

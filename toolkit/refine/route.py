@@ -65,20 +65,25 @@ def route_positions(street: StreetSegments, scene: Scene, dense: np.ndarray, max
         return out
     carrier = np.asarray(street.carrier, np.int64)
     s_cam = camera_route_positions(model)
-    img = model.observations[:, 0].astype(np.int64)
-    facade = np.asarray(street.point_labels) >= 0
-    for only in (facade, None):        # façade points first; the rest from every carried point
-        todo = ~np.isfinite(out)
-        seg_of_point = sparse_segments(model, dense, carrier, np.ones(S, bool), max_gap_m, only=only)
-        seg = seg_of_point[model.observations[:, 1].astype(np.int64)]
+    everyone = np.ones(S, bool)
+
+    def observed_medians(only: np.ndarray | None) -> np.ndarray:
+        seg = sparse_segments(model, dense, carrier, everyone, max_gap_m, only=only)[
+            model.observations[:, 1].astype(np.int64)]
         keep = seg >= 0
-        order = np.lexsort((s_cam[img[keep]], seg[keep]))
-        segs, s_sorted = seg[keep][order], s_cam[img[keep]][order]
+        s_obs = s_cam[model.observations[keep, 0].astype(np.int64)]
+        order = np.lexsort((s_obs, seg[keep]))
+        segs, s_sorted = seg[keep][order], s_obs[order]
         bounds = np.searchsorted(segs, np.arange(S + 1))
-        for i in np.flatnonzero(todo & (bounds[1:] > bounds[:-1])):
-            out[i] = float(np.median(s_sorted[bounds[i]:bounds[i + 1]]))
-        if np.isfinite(out).all():
-            break
+        med = np.full(S, np.nan)
+        for i in np.flatnonzero(bounds[1:] > bounds[:-1]):
+            med[i] = float(np.median(s_sorted[bounds[i]:bounds[i + 1]]))
+        return med
+
+    out = observed_medians(np.asarray(street.point_labels) >= 0)      # façade points first
+    unknown = ~np.isfinite(out)
+    if unknown.any():                                                 # the rest from every carried point
+        out[unknown] = observed_medians(None)[unknown]
     return out
 
 
