@@ -25,7 +25,9 @@ Finally (``joint_window_m`` > 0, route-aware), each segment's 2D transform is re
 registering together the footprints of all segments captured within that distance along the route
 (``toolkit.refine.joint``): the per-building errors of the over-view outlines (OSM digitising
 offsets, label-map edges) average out over several buildings, and other buildings' corners fix the
-position along straight walls.
+position along straight walls. With ``rotation_window_m`` > 0, each segment's rotation is then the
+mean of its route neighbours' (``toolkit.refine.rotation``), turned about its own footprint centre:
+a compact façade fixes its rotation weakly, and the ground it carries far from it follows that error.
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ from toolkit.refine.ground3d import GroundParams, ground_step, height_source, pr
 from toolkit.refine.joint import JointParams, joint_transforms
 from toolkit.refine.propagate import footprint_window, predict_seed
 from toolkit.refine.route import neighbour_keys, route_positions
+from toolkit.refine.rotation import smoothed_rotations
 from toolkit.refine.search2d import AllOutlines, SearchParams, search_segments
 from toolkit.refine.segments import SegmentPoints, input_anchors
 from toolkit.stage import Stage, StageParams
@@ -117,6 +120,14 @@ class Exhaustive(Stage):
                                "share (1 − (Δs/window)³)³ of each segment's points by its route distance Δs, so that "
                                "a longer window averages more buildings while far ones, drifted, weigh less.")
 
+        rotation_window_m: float = Field(
+            0.0, ge=0, description="After the joint pass (route-aware only), each segment's 2D rotation is replaced by the mean rotation of "
+                                   "the segments captured within this distance along the route (tricube weights on "
+                                   "route distance times √(footprint points)), turned about its own footprint centre "
+                                   "(metres; 0: off). A short or compact façade leaves its rotation weakly fixed, and "
+                                   "the ground it carries tens of metres away moves by that angle times the lever "
+                                   "(toolkit.refine.rotation). recipes/label_map.yaml takes 150 m.")
+
     @classmethod
     def scene_needs(cls, params) -> tuple[str, ...]:
         return ("street_cloud",)
@@ -165,7 +176,7 @@ class Exhaustive(Stage):
             T, valid = self._propagate(street, overview, graphs, pts, heights, sp, gp, cp, st, T, valid, obs)
         for _ in range(p.neighbour_passes):
             T, valid = self._neighbour_pass(street, overview, graphs, pts, heights, sp, gp, cp, st, T, valid, obs)
-        if p.joint_window_m > 0 and np.isfinite(route_s).any():
+        if (p.joint_window_m > 0 or p.rotation_window_m > 0) and np.isfinite(route_s).any():
             T = self._joint_pass(street, overview, pts, heights, gp, cp, st, valid, obs)
         if not valid.any():
             obs.warn("no street segment could be registered (no match survived refinement)")
@@ -275,7 +286,8 @@ class Exhaustive(Stage):
 
     def _joint_pass(self, street, overview, pts, heights, gp, cp, st, valid, obs):
         """Each valid segment's 2D transform re-estimated with its route neighbours' footprints
-        (``toolkit.refine.joint``), then its tilt and height redone under the new placement."""
+        (``toolkit.refine.joint``) and its rotation smoothed along the route (``toolkit.refine.rotation``),
+        each when its window is > 0, then its tilt and height redone under the new placement."""
         p = self.params
         jp = JointParams(window_m=p.joint_window_m, rotation_deg=p.joint_rotation_deg,
                          rotation_step_deg=min(0.5, p.rotation_step_deg), shift_m=p.joint_shift_m,
@@ -285,8 +297,17 @@ class Exhaustive(Stage):
                          kernel=p.joint_kernel)
         idx = np.flatnonzero(valid & np.isfinite(st.route_s))
         fps = {int(i): pts.footprint(i, p.footprint_cell_m, p.max_footprint_points) for i in idx}
-        T2d = joint_transforms(fps, st.T2d, st.route_s, input_anchors(street), overview.grid,
-                               np.asarray(overview.label_image), jp, st.outlines)
+        T2d = st.T2d
+        if p.joint_window_m > 0:
+            T2d = joint_transforms(fps, T2d, st.route_s, input_anchors(street), overview.grid,
+                                   np.asarray(overview.label_image), jp, st.outlines)
+        if p.rotation_window_m > 0:
+            centres = np.zeros((len(street), 2))
+            for i in idx:
+                centres[i] = fps[int(i)].mean(axis=0)
+            sizes = np.array([len(fps.get(int(i), ())) for i in range(len(street))], np.float64)
+            T2d = smoothed_rotations(T2d, idx, st.route_s, input_anchors(street), centres, np.sqrt(sizes),
+                                     p.rotation_window_m)
         level = np.array([0.0, 0.0, 1.0])
         for i in idx:
             _, _, o_normal, o_height, _ = st.target[i] if st.target[i] is not None else (None, None, level, np.nan, 0)
