@@ -121,8 +121,9 @@ class Exhaustive(Stage):
                                "a longer window averages more buildings while far ones, drifted, weigh less.")
 
         rotation_window_m: float = Field(
-            0.0, ge=0, description="After the joint pass (route-aware only), each segment's 2D rotation is replaced by the mean rotation of "
-                                   "the segments captured within this distance along the route (tricube weights on "
+            0.0, ge=0, description="After the joint pass (route-aware only), each segment's 2D rotation is replaced "
+                                   "by the mean rotation of the segments captured within this distance along the "
+                                   "route (tricube weights on "
                                    "route distance times √(footprint points)), turned about its own footprint centre "
                                    "(metres; 0: off). A short or compact façade leaves its rotation weakly fixed, and "
                                    "the ground it carries tens of metres away moves by that angle times the lever "

@@ -46,8 +46,8 @@ class InverseLog(Stage):
             description="Distances are clamped to at least this (metres, > 1 since log d ≤ 0 for d ≤ 1 m): every "
                         "segment within 10 m of a point weighs 1/log 10 = 0.43, one 25 m away 0.31, 100 m away "
                         "0.22. A small clamp lets a point's own façade outweigh every neighbour near it (1/log 1.5 = "
-                        "2.5), close to warp.nearest there. Held-out campus seeds 5-10 x 3 sources (18 runs with BA), 1.5/6/10 m: "
-                        "horizontal median 0.312/0.308/0.308 m, 3D mean 0.521/0.513/0.513 m, 3D p95 "
+                        "2.5), close to warp.nearest there. Held-out campus seeds 5-10 x 3 sources (18 runs "
+                        "with BA), 1.5/6/10 m: horizontal median 0.312/0.308/0.308 m, 3D mean 0.521/0.513/0.513 m, 3D p95 "
                         "1.164/1.096/1.089 m, border p95 1.310/1.283/1.271 m, camera median after BA "
                         "0.308/0.308/0.309 m; without BA, 2-25 m: a plateau from 6 to 15 m.")
         relative_distance: bool = Field(
