@@ -178,7 +178,7 @@ class Exhaustive(Stage):
         for _ in range(p.neighbour_passes):
             T, valid = self._neighbour_pass(street, overview, graphs, pts, heights, sp, gp, cp, st, T, valid, obs)
         if (p.joint_window_m > 0 or p.rotation_window_m > 0) and np.isfinite(route_s).any():
-            T = self._joint_pass(street, overview, pts, heights, gp, cp, st, valid, obs)
+            T = self._route_pass(street, overview, pts, heights, gp, cp, st, valid, obs)
         if not valid.any():
             obs.warn("no street segment could be registered (no match survived refinement)")
         if obs.wants_debug and st.shown:
@@ -285,7 +285,7 @@ class Exhaustive(Stage):
         warn_rejected(street, before, valid, obs)
         return T, valid
 
-    def _joint_pass(self, street, overview, pts, heights, gp, cp, st, valid, obs):
+    def _route_pass(self, street, overview, pts, heights, gp, cp, st, valid, obs):
         """Each valid segment's 2D transform re-estimated with its route neighbours' footprints
         (``toolkit.refine.joint``) and its rotation smoothed along the route (``toolkit.refine.rotation``),
         each when its window is > 0, then its tilt and height redone under the new placement."""
@@ -303,10 +303,9 @@ class Exhaustive(Stage):
             T2d = joint_transforms(fps, T2d, st.route_s, input_anchors(street), overview.grid,
                                    np.asarray(overview.label_image), jp, st.outlines)
         if p.rotation_window_m > 0:
-            centres = np.zeros((len(street), 2))
+            centres, sizes = np.zeros((len(street), 2)), np.zeros(len(street))
             for i in idx:
-                centres[i] = fps[int(i)].mean(axis=0)
-            sizes = np.array([len(fps.get(int(i), ())) for i in range(len(street))], np.float64)
+                centres[i], sizes[i] = fps[int(i)].mean(axis=0), len(fps[int(i)])
             T2d = smoothed_rotations(T2d, idx, st.route_s, input_anchors(street), centres, np.sqrt(sizes),
                                      p.rotation_window_m)
         level = np.array([0.0, 0.0, 1.0])

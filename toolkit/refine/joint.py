@@ -28,6 +28,7 @@ import numpy as np
 
 from toolkit.forked import map_chunks_forked
 from toolkit.refine.columns import column_means
+from toolkit.refine.route import route_neighbours, tricube
 from toolkit.refine.search2d import AllOutlines, SearchParams, search_segments
 from toolkit.refine.segments import thin_xy
 from toolkit.types import Grid
@@ -102,7 +103,7 @@ def joint_footprint(footprints: dict[int, np.ndarray], near: np.ndarray, ds_m: n
         lab = labels[int(j)] if labels is not None else None
         n = len(f) if p.segment_points <= 0 else min(len(f), p.segment_points)
         if p.kernel == "tricube":
-            n = int(np.ceil(n * (1.0 - min(1.0, abs(float(ds)) / p.window_m) ** 3) ** 3))
+            n = int(np.ceil(n * tricube(float(ds) / p.window_m)))
         elif p.kernel != "box":
             raise ValueError(f"unknown joint kernel {p.kernel!r}")
         if n < len(f):
@@ -135,11 +136,10 @@ def joint_transforms(footprints: dict[int, np.ndarray], T2d: np.ndarray, route_s
     if p.outline_points > 0:        # each segment's points by the outline they lie on under its own transform
         nearest_outline = OutlineLabels(grid, label_image)
         labels = {int(j): nearest_outline(footprints[int(j)] @ T2d[j][:2, :2].T + T2d[j][:2, 2]) for j in idx}
+    ds, within = route_neighbours(route_s[idx], anchors_xy[idx], p.window_m)
     searched, problems = [], []
-    for i in idx:
-        near = idx[(np.abs(route_s[idx] - route_s[i]) <= p.window_m)
-                   & (np.linalg.norm(anchors_xy[idx] - anchors_xy[i], axis=1) <= 2 * p.window_m)]
-        fp = joint_footprint(footprints, near, route_s[near] - route_s[i], p, labels, thinned)
+    for row, i in enumerate(idx):
+        fp = joint_footprint(footprints, idx[within[row]], ds[row, within[row]], p, labels, thinned)
         if len(fp) < 10:
             continue
         centre = column_means(fp @ T2d[i][:2, :2].T + T2d[i][:2, 2])

@@ -16,10 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-
-def tricube(d: np.ndarray) -> np.ndarray:
-    """(1 − |d|³)³ for |d| < 1, else 0."""
-    return np.clip(1.0 - np.abs(d) ** 3, 0.0, None) ** 3
+from toolkit.refine.route import route_neighbours, tricube
 
 
 def rotation_deg(T2d: np.ndarray) -> np.ndarray:
@@ -38,8 +35,7 @@ def smoothed_rotations(T2d: np.ndarray, idx: np.ndarray, route_s: np.ndarray, an
     if window_m <= 0 or len(idx) < 2:
         return out
     angle = rotation_deg(T2d[idx])
-    ds = route_s[idx][:, None] - route_s[idx][None]
-    near = np.linalg.norm(anchors_xy[idx][:, None] - anchors_xy[idx][None], axis=2) <= 2 * window_m
+    ds, near = route_neighbours(route_s[idx], anchors_xy[idx], window_m)
     w = tricube(ds / window_m) * near * weights[idx][None]
     # differences wrapped to (−180, 180], so that angles either side of ±180° average correctly
     diff = (angle[None] - angle[:, None] + 180.0) % 360.0 - 180.0

@@ -29,6 +29,20 @@ def camera_route_positions(model: SparseModel) -> np.ndarray:
     return np.concatenate([[0.0], np.cumsum(steps)])
 
 
+def tricube(d: np.ndarray) -> np.ndarray:
+    """(1 − |d|³)³ for |d| < 1, else 0: the weight of a segment ``d`` windows away along the route."""
+    return np.clip(1.0 - np.abs(d) ** 3, 0.0, None) ** 3
+
+
+def route_neighbours(route_s: np.ndarray, anchors: np.ndarray, window_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """(n,n) route distances ``ds[i, j] = s_j − s_i`` and (n,n) bool: j lies within ``window_m`` of i
+    along the route and within ``2·window_m`` in the street frame (``anchors`` (n,3)), so that a
+    segment of another pass of the route, next to i in the drifted frame, never joins."""
+    ds = route_s[None, :] - route_s[:, None]
+    apart = np.linalg.norm(anchors[None, :] - anchors[:, None], axis=2)
+    return ds, (np.abs(ds) <= window_m) & (apart <= 2 * window_m)
+
+
 def sparse_segments(model: SparseModel, dense: np.ndarray, carrier: np.ndarray, valid: np.ndarray,
                     max_gap_m: float = 1.0, only: np.ndarray | None = None) -> np.ndarray:
     """(P,) valid carrier segment of the dense point next to each sparse point (−1: none within
