@@ -206,7 +206,8 @@ def run(scene_dir: Path, recipe: str, args) -> None:
             segment_report(matches, street, tr, scene, truth)
         border = border_mask(street, tr, scene, args.border_m)
         regs = {}
-        for warp in (InverseLog.from_config(_overrides(args.warp)), Nearest()):
+        warp_params = {**recipe_params(REPO / "recipes" / recipe, "warp", InverseLog), **_overrides(args.warp)}
+        for warp in (InverseLog.from_config(warp_params), Nearest()):
             t0, c0 = time.perf_counter(), time.process_time()
             reg = warp(tr, street, scene, NullObserver())
             t_warp = time.perf_counter() - t0
@@ -221,7 +222,7 @@ def run(scene_dir: Path, recipe: str, args) -> None:
             continue
         model = load_sparse(scene)
         C_true = truth_centres(scene, model.image_names)
-        ba = _overrides(args.adjust)
+        ba = {**recipe_params(REPO / "recipes" / recipe, "adjust", ConstrainedBA), **_overrides(args.adjust)}
         adjusters = [NoAdjust(), ConstrainedBA.from_config(ba)] \
             + ([ConstrainedBA.from_config({**ba, "backend": "scipy"})] if args.scipy else [])
         for adj in adjusters:

@@ -111,6 +111,19 @@ def test_points_of_invalid_or_missing_segments_are_still_carried(scene_with_came
         assert far_from_input.min() > 1000.0
 
 
+def test_cameras_blend_over_their_own_neighbour_count(scene_with_cameras):
+    w, scene, _ = scene_with_cameras
+    T = _transforms(w["T_true"])
+    both = InverseLog.from_config({"neighbours_k": 3})(T, w["street"], scene, NullObserver())
+    own = InverseLog.from_config({"neighbours_k": 3, "camera_neighbours_k": 0})(T, w["street"], scene, NullObserver())
+    near = Nearest()(T, w["street"], scene, NullObserver())
+    assert np.array_equal(own.points, both.points)          # the points' blend is untouched
+    assert np.allclose(own.R, near.R, atol=1e-12) and np.allclose(own.t, near.t, atol=1e-9)
+    assert np.abs(both.t - near.t).max() > 1e-3               # the cameras did blend with K = 3
+    same = InverseLog.from_config({"neighbours_k": 3, "camera_neighbours_k": 3})(T, w["street"], scene, NullObserver())
+    assert np.array_equal(same.t, both.t) and np.array_equal(same.R, both.R)
+
+
 def test_no_valid_segment_is_a_one_line_stage_error(scene_with_cameras):
     w, scene, _ = scene_with_cameras
     with pytest.raises(StageError, match="no valid segment"):

@@ -100,7 +100,7 @@ def test_cameras_of_the_other_pass_follow_a_segment_of_their_own_pass(tmp_path, 
     """A last-pass camera that mostly sees the merged segment 0 (fitted to the first pass) must not
     take its transform: it is anchored on a segment of its own pass (here 1, 12 m away)."""
     street, scene, tr, _ = _loop_scene(tmp_path)
-    extra = {"neighbours_k": 1} if stage is InverseLog else {}
+    extra = {"neighbours_k": 1, "camera_neighbours_k": 1} if stage is InverseLog else {}
     on = stage.from_config(extra)(tr, street, scene, NullObserver())
     off = stage.from_config({"pass_gap_m": None, **extra})(tr, street, scene, NullObserver())
     truth = np.vstack([np.column_stack([np.arange(20.0), np.full(20, 4.0), np.full(20, 1.5)]),

@@ -83,15 +83,17 @@ def segment_route_positions(seg_of_point: np.ndarray, sparse_s: np.ndarray, S: i
 
 def warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Scene, k: int, d_min: float,
                agree_tol_m: float = np.inf, agree_ratio: float = 0.0, max_gap_m: float = np.inf,
-               cell_m: float = 0.5, passes: PassCheck = PassCheck(), relative: bool = False) -> Registration:
+               cell_m: float = 0.5, passes: PassCheck = PassCheck(), relative: bool = False,
+               camera_k: int | None = None) -> Registration:
+    """Blend points over their anchor and its k neighbours, cameras over camera_k (None: k)."""
     with single_threaded_blas():
         return _warp_scene(transforms, street, scene, k, d_min, agree_tol_m, agree_ratio, max_gap_m, cell_m, passes,
-                           relative)
+                           relative, k if camera_k is None else camera_k)
 
 
 def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Scene, k: int, d_min: float,
                 agree_tol_m: float, agree_ratio: float, max_gap_m: float, cell_m: float,
-                passes: PassCheck, relative: bool) -> Registration:
+                passes: PassCheck, relative: bool, camera_k: int) -> Registration:
     from toolkit.scene import load_points, load_sparse
 
     T = np.asarray(transforms.T, np.float64)
@@ -117,7 +119,7 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Sc
             unknown = ~np.isfinite(segment_s)
             segment_s[unknown] = segment_route_positions(seg_of_point, sparse_s, len(street))[unknown]
     # blending neighbours of one pass only (segment_s: None without the pass check)
-    index = SegmentIndex.build(street, transforms, max(k, 1), agree_tol_m=agree_tol_m, agree_ratio=agree_ratio,
+    index = SegmentIndex.build(street, transforms, max(k, camera_k, 1), agree_tol_m=agree_tol_m, agree_ratio=agree_ratio,
                                max_gap_m=max_gap_m, route_s=segment_s,
                                route_gap_m=np.inf if passes.pass_gap_m is None else passes.pass_gap_m)
     anchors = index.anchors(xy, carrier, valid)
@@ -157,7 +159,7 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Sc
                 cam_anchor = reanchor_other_pass(cam_anchor, cxy, np.where(unseen, cam_s, np.nan), segment_s,
                                                  np.asarray(index.all_tree.data), index.all_seg,
                                                  passes.pass_gap_m, passes.route_scale)
-        pos, Rb, spread = blend_rigid(C, cxy, cam_anchor, T, index, k, d_min, relative)
+        pos, Rb, spread = blend_rigid(C, cxy, cam_anchor, T, index, camera_k, d_min, relative)
         R = np.einsum("cab,cdb->cad", model.R, Rb)          # R_wc · R̄ᵀ
         t = -np.einsum("cab,cb->ca", R, pos)
     return Registration(points=moved, image_names=names, R=R, t=t, point_segment=anchors.astype(np.int64, copy=False),
