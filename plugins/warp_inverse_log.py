@@ -1,7 +1,8 @@
 """warp.inverse_log — paper Eq. 6: distance-weighted blending of the segment transforms.
 
 Every street point and every camera pose is moved by the weighted average of the transforms of its
-segment and that segment's K nearest valid neighbours, ``w = 1/log(d)`` with d the horizontal
+segment and that segment's K nearest valid neighbours (``neighbours_k`` for points,
+``camera_neighbours_k`` for cameras), ``w = 1/log(d)`` with d the horizontal
 distance to each segment's footprint, clamped to ``min_distance_m`` because log(d) ≤ 0 for
 d ≤ 1 m. Rotations are averaged as quaternions (principal eigenvector), translations about the
 point itself (``toolkit.warp.blend``). Points without a valid carrier segment are anchored on the

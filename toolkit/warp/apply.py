@@ -119,8 +119,8 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Sc
             unknown = ~np.isfinite(segment_s)
             segment_s[unknown] = segment_route_positions(seg_of_point, sparse_s, len(street))[unknown]
     # blending neighbours of one pass only (segment_s: None without the pass check)
-    index = SegmentIndex.build(street, transforms, max(k, camera_k, 1), agree_tol_m=agree_tol_m, agree_ratio=agree_ratio,
-                               max_gap_m=max_gap_m, route_s=segment_s,
+    index = SegmentIndex.build(street, transforms, max(k, camera_k, 1), agree_tol_m=agree_tol_m,
+                               agree_ratio=agree_ratio, max_gap_m=max_gap_m, route_s=segment_s,
                                route_gap_m=np.inf if passes.pass_gap_m is None else passes.pass_gap_m)
     anchors = index.anchors(xy, carrier, valid)
     if segment_s is not None:
