@@ -298,15 +298,15 @@ class Exhaustive(Stage):
                          kernel=p.joint_kernel)
         idx = np.flatnonzero(valid & np.isfinite(st.route_s))
         fps = {int(i): pts.footprint(i, p.footprint_cell_m, p.max_footprint_points) for i in idx}
-        T2d = st.T2d
+        T2d, anchors = st.T2d, input_anchors(street)
         if p.joint_window_m > 0:
-            T2d = joint_transforms(fps, T2d, st.route_s, input_anchors(street), overview.grid,
+            T2d = joint_transforms(fps, T2d, st.route_s, anchors, overview.grid,
                                    np.asarray(overview.label_image), jp, st.outlines)
         if p.rotation_window_m > 0:
             centres, sizes = np.zeros((len(street), 2)), np.zeros(len(street))
             for i in idx:
                 centres[i], sizes[i] = fps[int(i)].mean(axis=0), len(fps[int(i)])
-            T2d = smoothed_rotations(T2d, idx, st.route_s, input_anchors(street), centres, np.sqrt(sizes),
+            T2d = smoothed_rotations(T2d, idx, st.route_s, anchors, centres, np.sqrt(sizes),
                                      p.rotation_window_m)
         level = np.array([0.0, 0.0, 1.0])
         for i in idx:
