@@ -48,6 +48,7 @@ from toolkit.errors import StageError
 from toolkit.matching import anchors as AN
 from toolkit.matching import chamfer as CH
 from toolkit.matching.atlas import CropAtlas, build_atlas
+from toolkit.matching.route_prior import RoutePriorConfig
 from toolkit.observe import DebugPoints2D, DebugText
 from toolkit.stage import Stage, StageParams
 from toolkit.threads import map_in_order
@@ -164,6 +165,9 @@ class DistanceMap(Stage):
             45.0, gt=0, description="With GPS: prune candidates whose rotation differs more (None: no test).")
         gps_fit_fixes: int = Field(
             100, ge=3, description="GPS fixes per local rigid fit (nearest to the segment).")
+        route_prior: RoutePriorConfig = Field(
+            default_factory=RoutePriorConfig,
+            description="Without street/gps.csv: place the route by its façades first, then prune as with GPS.")
         workers: int = Field(2, ge=1, le=64, description="Threads for the searches, at most the run's thread "
                                                       "budget (toolkit.threads; results do not depend on it).")
         max_elements: int = Field(
@@ -245,6 +249,8 @@ class DistanceMap(Stage):
             from toolkit.matching.gps import gps_prior
 
             prior = gps_prior(scene, street, n_local=p.gps_fit_fixes, warn=obs.warn)
+        if prior is None and p.route_prior.enabled and scene is not None and scene.has("sparse"):
+            prior = self._route_prior(street, overview, scene, obs)
         seg_radius = self._gps_radii(prior, len(s_cent)) if prior is not None else None
         near = None
         if prior is not None:  # only labels near each edge's GPS midpoint can pass its test below
@@ -347,8 +353,9 @@ class DistanceMap(Stage):
             f_cost[bad] = np.inf
         # pruned stays +inf (np.clip would turn it into 1, a tie with null that greedy then picks)
         cost[pe, pl] = np.where(np.isfinite(f_cost), np.clip(f_cost / p.raw_cost_at_null, 0.0, 1.0), np.inf)
-        theta_out[pe, pl] = _wrap(f_theta)
-        t_out[pe, pl] = t_hat
+        kept = np.isfinite(f_cost)  # a pose the GPS test rejected is pruned like any other: NaN
+        theta_out[pe[kept], pl[kept]] = _wrap(f_theta[kept])
+        t_out[pe[kept], pl[kept]] = t_hat[kept]
         # twins of same-segment labels (label 2f+1 = label 2f when f is a self-loop)
         cost[twin_e, twin_l] = cost[twin_e, twin_l - 1]
         theta_out[twin_e, twin_l] = theta_out[twin_e, twin_l - 1]
@@ -482,6 +489,19 @@ class DistanceMap(Stage):
             dist.append(np.linalg.norm(placed - prior.position[seg], axis=1))
             turn.append(np.abs(_wrap(theta - prior.angle[seg])))
         return np.stack(dist, axis=1), np.stack(turn, axis=1)
+
+    def _route_prior(self, street: StreetSegments, overview: OverviewSegments, scene: Scene, obs):
+        """The route placed by its façades (``toolkit.matching.route_prior``), or None with a warning."""
+        from toolkit.matching.route_prior import capture_order, place_route
+        from toolkit.scene import load_sparse
+
+        model = load_sparse(scene, who="unary.distance_map (route placement)")
+        cams = street.level(model.centres[capture_order(model.image_names)])[:, :2]
+        placed = place_route(street, overview, cams, self.params.route_prior)
+        obs.debug("route_placement", DebugText(placed.describe()))
+        if placed.prior is None:
+            obs.warn(f"route placement not used ({placed.reason}): every over-view pair is searched")
+        return placed.prior
 
     def _uses_probes(self, scene) -> bool:
         return self.params.free_space_weight > 0 and scene is not None and scene.has("sparse")

@@ -53,7 +53,9 @@ def cameras(toy, tmp_path_factory):
 @pytest.fixture(scope="module")
 def solved(toy, cameras):
     graphs = KnnGraph()(toy.street, toy.overview, NullObserver())
-    return graphs, DistanceMap()(graphs, toy.street, toy.overview, cameras, NullObserver())
+    # the exhaustive data term (no route placement), which the GPS tests below are compared with
+    full = DistanceMap(DistanceMap.Params(route_prior={"enabled": False}))
+    return graphs, full(graphs, toy.street, toy.overview, cameras, NullObserver())
 
 
 def test_costs_follow_the_contract(solved):
@@ -104,7 +106,8 @@ def test_label_orders_are_symmetric(toy, solved, cameras):
     S = len(toy.street)
     rev = street_from_boundaries(list(toy.street.boundary_xy[::-1]))
     g2 = KnnGraph()(rev, toy.overview, NullObserver())
-    c2 = DistanceMap()(g2, rev, toy.overview, cameras, NullObserver())
+    c2 = DistanceMap(DistanceMap.Params(route_prior={"enabled": False}))(g2, rev, toy.overview, cameras,
+                                                                         NullObserver())
     where = {tuple(e): i for i, e in enumerate(g2.street_edges.tolist())}
     diffs = []
     for e, (j, k) in enumerate(graphs.street_edges):
@@ -291,7 +294,7 @@ def test_gps_radius_widens_where_the_local_fit_residual_is_large(tmp_path, toy):
     assert np.allclose(explicit._gps_radii(dataclasses.replace(bent), len(toy.street)), 12.0)
 
 
-def test_gps_with_too_few_fixes_warns_and_prunes_nothing(tmp_path):
+def test_gps_with_too_few_fixes_warns_and_falls_back_to_the_route_placement(tmp_path):
     small = make_toy((2, 2), seed=4)
     graphs = KnnGraph()(small.street, small.overview, NullObserver())
     without = DistanceMap()(graphs, small.street, small.overview, _scene(tmp_path / "cams", small, gps=False),

@@ -1,0 +1,347 @@
+"""A coarse placement of the street from its façades and the over-view outlines alone (no GPS).
+
+The route is cut into overlapping windows along the cameras' path. Each window's façade points
+are correlated with a map of the over-view's outer outlines over every rotation (one FFT per
+rotation, ``scipy.fft``), keeping its best distinct placements. A chain search (Viterbi) then picks
+one placement per window so that neighbouring windows put the cameras between them in the same
+place, and each street segment takes the placement of the windows around its route position.
+The result is a ``GpsPrior``: the data term prunes and weighs its candidates with it exactly as
+with GPS fixes, so that a search over every over-view edge pair is no longer needed.
+
+Only outlines facing open ground are kept: the walls between touching buildings (terraced houses
+in OSM) are never seen from the street, and in a dense city they make any placement look good.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from scipy import fft as sfft
+from scipy import ndimage
+
+from toolkit.matching.gps import GpsPrior
+from toolkit.types import OverviewSegments, StreetSegments
+
+
+class RoutePriorConfig(BaseModel):
+    """Without street/gps.csv: place the route by its façades first (see toolkit.matching.route_prior)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    enabled: bool = Field(True, description="without GPS, place the route by its façades and prune as with GPS")
+    window_m: float = Field(250.0, gt=20, description="route length of each placement window (metres)")
+    cell_m: float = Field(4.0, gt=0, description="cell size of the correlation maps (metres)")
+    tolerance_m: float = Field(6.0, gt=0, description="a façade point farther than this from an outline scores 0")
+    rotation_step_deg: float = Field(3.0, gt=0, le=30, description="rotation step of the placement search")
+    candidates_per_window: int = Field(20, ge=1, description="distinct coarse placements re-scored on the fine map")
+    placements_per_window: int = Field(8, ge=1, description="distinct placements kept per window for the chain")
+    fine_cell_m: float = Field(1.0, gt=0, description="cell size of the fine map the coarse placements are re-scored on")
+    fine_tolerance_m: float = Field(3.0, gt=0, description="tolerance of the fine map (metres)")
+    agree_m: float = Field(15.0, gt=0, description="neighbouring windows disagreeing by this much pay the full link cost")
+    link_cost: float = Field(0.5, ge=0, description="cost of a full disagreement between neighbouring windows")
+    sigma_m: float = Field(3.0, gt=0, description="accuracy the data term assumes for the placed segment centres")
+    min_score: float = Field(0.35, ge=0, le=1, description="a chain whose median window score is below this is not used")
+
+
+@dataclass(frozen=True)
+class OutlineMap:
+    """close: (H,W) float32 in [0,1], 1 on an outer outline, 0 from tolerance_m; cell (0,0)'s lower
+    corner is at ``corner`` (world x, y); rows follow x, columns follow y."""
+
+    corner: np.ndarray
+    cell_m: float
+    close: np.ndarray
+
+
+@dataclass(frozen=True)
+class Placement:
+    """x_world = R(theta) (x − pivot) + t for levelled street xy; score: mean closeness in [0,1]."""
+
+    theta: float
+    t: np.ndarray
+    pivot: np.ndarray
+    score: float
+
+    def apply(self, xy: np.ndarray) -> np.ndarray:
+        c, s = np.cos(self.theta), np.sin(self.theta)
+        return (np.asarray(xy) - self.pivot) @ np.array([[c, s], [-s, c]]) + self.t
+
+
+@dataclass(frozen=True)
+class RoutePlacement:
+    """The chosen placement of each window, the prior it gives, and what tells a user how sure it is:
+    window_scores (W,), link_m (W-1,) disagreement of neighbouring windows, top_share: share of
+    windows whose chosen placement is also their best alone."""
+
+    prior: GpsPrior | None
+    windows: tuple[Placement, ...]
+    window_centres_m: np.ndarray
+    window_scores: np.ndarray
+    link_m: np.ndarray
+    top_share: float
+    reason: str = ""
+
+    def describe(self) -> str:
+        scores = " ".join(f"{v:.2f}" for v in self.window_scores)
+        links = " ".join(f"{v:.1f}" for v in self.link_m)
+        used = "used" if self.prior is not None else f"not used: {self.reason}"
+        return (f"route placement {used}; {len(self.windows)} windows, scores [{scores}], "
+                f"neighbour disagreement m [{links}], best alone in {self.top_share:.0%}")
+
+
+def capture_order(image_names) -> np.ndarray:
+    """Indices of the images in capture order: by name, numbers compared as numbers (frame_9 < frame_10)."""
+    import re
+
+    def key(name: str):
+        return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", str(name))]
+
+    return np.array(sorted(range(len(image_names)), key=lambda i: key(image_names[i])), dtype=np.int64)
+
+
+def outer_outline_map(overview: OverviewSegments, cell_m: float, tolerance_m: float,
+                      margin_m: float) -> OutlineMap:
+    """Outline pixels next to ground (not to another segment), as a closeness map on a coarse grid."""
+    lab = overview.label_image
+    inside = lab >= 0
+    ground = np.pad(~inside, 1, constant_values=True)
+    touches = np.zeros_like(inside)
+    for dr, dc in ((0, 1), (2, 1), (1, 0), (1, 2)):
+        touches |= ground[dr:dr + lab.shape[0], dc:dc + lab.shape[1]]
+    rows, cols = np.nonzero(inside & touches)
+    xy = overview.grid.pixel_to_world(rows, cols)
+    corner = xy.min(axis=0) - margin_m
+    shape = np.ceil((xy.max(axis=0) + margin_m - corner) / cell_m).astype(np.int64) + 1
+    occupied = np.zeros(tuple(shape), dtype=bool)
+    ij = ((xy - corner) / cell_m).astype(np.int64)
+    occupied[ij[:, 0], ij[:, 1]] = True
+    d_m = ndimage.distance_transform_edt(~occupied) * cell_m
+    close = np.clip(1.0 - d_m / tolerance_m, 0.0, 1.0).astype(np.float32)
+    return OutlineMap(corner=corner, cell_m=cell_m, close=close)
+
+
+def route_arclength(cameras_xy: np.ndarray) -> np.ndarray:
+    """(C,) distance travelled to each camera (cameras in capture order)."""
+    step = np.linalg.norm(np.diff(cameras_xy, axis=0), axis=1)
+    return np.concatenate([[0.0], np.cumsum(step)])
+
+
+def _window_placements(omap: OutlineMap, spectrum: np.ndarray, shape: tuple[int, int], pts: np.ndarray,
+                       thetas: np.ndarray, keep: int, batch: int = 24, workers: int = 1) -> list[Placement]:
+    """Best distinct placements of one window's points over every rotation (FFT correlation)."""
+    cell = omap.cell_m
+    pivot = pts.mean(axis=0)
+    H, W = shape
+    found: list[tuple[float, float, int, int, np.ndarray]] = []
+    for b0 in range(0, len(thetas), batch):
+        th = thetas[b0:b0 + batch]
+        imgs = np.zeros((len(th), H, W), dtype=np.float32)
+        lows = []
+        for r, a in enumerate(th):
+            c, s = np.cos(a), np.sin(a)
+            ij = np.floor((pts - pivot) @ np.array([[c, s], [-s, c]]) / cell).astype(np.int64)
+            low = ij.min(axis=0)
+            ij -= low
+            lows.append(low)
+            if ij[:, 0].max() >= H or ij[:, 1].max() >= W:
+                continue
+            imgs[r, ij[:, 0], ij[:, 1]] = 1.0
+        n = np.maximum(imgs.sum(axis=(1, 2)), 1.0)
+        corr = sfft.irfft2(spectrum[None] * np.conj(sfft.rfft2(imgs, axes=(1, 2), workers=workers)), s=(H, W),
+                           axes=(1, 2), workers=workers)
+        corr /= n[:, None, None]
+        flat = corr.reshape(len(th), -1)
+        best = np.argpartition(flat, -3, axis=1)[:, -3:]
+        for r in range(len(th)):
+            for f in best[r]:
+                u, v = divmod(int(f), W)
+                found.append((float(flat[r, f]), float(th[r]), u, v, lows[r]))
+    found.sort(key=lambda x: -x[0])
+    out: list[Placement] = []
+    radius = np.linalg.norm(pts - pivot, axis=1).max() if len(pts) else 0.0
+    for score, a, u, v, low in found:
+        t = omap.corner + (np.array([u, v]) - low) * cell + cell / 2
+        dup = any(np.linalg.norm(t - o.t) < 2 * omap.cell_m + radius * abs(_wrap(a - o.theta))
+                  and abs(_wrap(a - o.theta)) < np.deg2rad(10) for o in out)
+        if not dup:
+            out.append(Placement(theta=a, t=t, pivot=pivot, score=score))
+        if len(out) >= keep:
+            break
+    return out
+
+
+def _refine(fine: OutlineMap, pts: np.ndarray, found: list[Placement], cfg: RoutePriorConfig,
+            max_points: int = 300, reach: float = 1.0) -> list[Placement]:
+    """Each coarse placement re-scored on the fine map at its best pose within a cell and a rotation
+    step of it; best first."""
+    sub = pts[np.linspace(0, len(pts) - 1, min(max_points, len(pts))).round().astype(int)]
+    d_theta = np.deg2rad(np.arange(-1.0, 1.01, 0.5) * reach * cfg.rotation_step_deg / 2)
+    r = np.arange(-reach * cfg.cell_m, reach * cfg.cell_m + 1e-9, fine.cell_m)
+    d_t = np.stack(np.meshgrid(r, r, indexing="ij"), axis=-1).reshape(-1, 2)
+    H, W = fine.close.shape
+    out = []
+    for p in found:
+        best = (-1.0, p.theta, p.t)
+        for dth in d_theta:
+            c, s = np.cos(p.theta + dth), np.sin(p.theta + dth)
+            base = (sub - p.pivot) @ np.array([[c, s], [-s, c]]) + p.t - fine.corner
+            ij = np.floor((base[None] + d_t[:, None]) / fine.cell_m).astype(np.int64)
+            ok = (ij[..., 0] >= 0) & (ij[..., 0] < H) & (ij[..., 1] >= 0) & (ij[..., 1] < W)
+            val = np.where(ok, fine.close[np.clip(ij[..., 0], 0, H - 1), np.clip(ij[..., 1], 0, W - 1)], 0.0)
+            score = val.mean(axis=1)
+            k = int(np.argmax(score))
+            if score[k] > best[0]:
+                best = (float(score[k]), p.theta + dth, p.t + d_t[k])
+        out.append(Placement(theta=float(best[1]), t=best[2], pivot=p.pivot, score=best[0]))
+    out.sort(key=lambda q: -q.score)
+    return out
+
+
+def _seed_from_neighbours(fine: OutlineMap, windows: list[list[Placement]], window_pts: list[np.ndarray],
+                          cfg: RoutePriorConfig, seeds: int = 2) -> list[list[Placement]]:
+    """Each window also tries its neighbours' best placements (the drift is slow along the route),
+    refined over twice the usual reach: a window that is ambiguous alone follows its neighbours."""
+    out = []
+    for w, found in enumerate(windows):
+        pivot = found[0].pivot
+        tried = []
+        for n in (w - 1, w + 1):
+            if 0 <= n < len(windows):
+                for q in windows[n][:seeds]:
+                    tried.append(Placement(theta=q.theta, t=q.apply(pivot[None])[0], pivot=pivot, score=q.score))
+        extra = _refine(fine, window_pts[w], tried, cfg, reach=2.0) if tried else []
+        merged = sorted(found + extra, key=lambda q: -q.score)
+        keep: list[Placement] = []
+        for q in merged:
+            if not any(abs(_wrap(q.theta - k.theta)) < np.deg2rad(1.5) and np.linalg.norm(q.t - k.t) < 2.0
+                       for k in keep):
+                keep.append(q)
+        out.append(keep[:cfg.placements_per_window + len(extra)])
+    return out
+
+
+def _chain(windows: list[list[Placement]], links: list[np.ndarray], cfg: RoutePriorConfig,
+           gaps_m: np.ndarray) -> tuple[list[int], np.ndarray]:
+    """Viterbi over windows: maximise Σ score − link_cost·Σ min(disagreement / agree, 1)."""
+    def link(a: Placement, b: Placement, cams: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(np.sum((a.apply(cams) - b.apply(cams)) ** 2, axis=1))))
+
+    value = np.array([p.score for p in windows[0]])
+    back = []
+    dist_tables = []
+    for w in range(1, len(windows)):
+        agree = cfg.agree_m + 0.05 * gaps_m[w - 1]
+        d = np.array([[link(a, b, links[w - 1]) for b in windows[w]] for a in windows[w - 1]])
+        total = value[:, None] - cfg.link_cost * np.minimum(d / agree, 1.0)
+        back.append(np.argmax(total, axis=0))
+        value = total.max(axis=0) + np.array([p.score for p in windows[w]])
+        dist_tables.append(d)
+    pick = [int(np.argmax(value))]
+    for w in range(len(windows) - 1, 0, -1):
+        pick.append(int(back[w - 1][pick[-1]]))
+    pick.reverse()
+    link_m = np.array([dist_tables[w - 1][pick[w - 1], pick[w]] for w in range(1, len(windows))])
+    return pick, link_m
+
+
+def place_route(street: StreetSegments, overview: OverviewSegments, cameras_xy: np.ndarray,
+                cfg: RoutePriorConfig) -> RoutePlacement:
+    """The placement of the route (levelled street xy → scene xy) and the prior it gives each segment."""
+    arc = route_arclength(cameras_xy)
+    pts, seg = _facade_cells(street, cfg.cell_m / 2)
+    from scipy.spatial import cKDTree
+
+    _, nearest = cKDTree(cameras_xy).query(pts)
+    s_pt = arc[nearest]
+    starts = np.arange(0.0, max(arc[-1] - cfg.window_m / 2, 0.0) + 1e-9, cfg.window_m / 2)
+    omap = outer_outline_map(overview, cfg.cell_m, cfg.tolerance_m, margin_m=2 * cfg.tolerance_m)
+    fine = outer_outline_map(overview, cfg.fine_cell_m, cfg.fine_tolerance_m, margin_m=2 * cfg.tolerance_m)
+    pad = int(np.ceil(1.5 * cfg.window_m / cfg.cell_m)) + 2
+    shape = (sfft.next_fast_len(omap.close.shape[0] + pad, real=True),
+             sfft.next_fast_len(omap.close.shape[1] + pad, real=True))
+    spectrum = sfft.rfft2(omap.close, s=shape).astype(np.complex64)
+    thetas = np.deg2rad(np.arange(0.0, 360.0, cfg.rotation_step_deg))
+    windows, centres, window_pts = [], [], []
+    for w0 in starts:
+        sel = (s_pt >= w0) & (s_pt < w0 + cfg.window_m)
+        if sel.sum() < 30:  # a park or an open square: the neighbours carry it
+            continue
+        found = _window_placements(omap, spectrum, shape, pts[sel], thetas, cfg.candidates_per_window)
+        found = _refine(fine, pts[sel], found, cfg)[:cfg.placements_per_window]
+        if found:
+            windows.append(found)
+            window_pts.append(pts[sel])
+            centres.append(w0 + cfg.window_m / 2)
+    centres = np.asarray(centres)
+    windows = _seed_from_neighbours(fine, windows, window_pts, cfg)
+    if not windows:
+        return RoutePlacement(None, (), centres, np.zeros(0), np.zeros(0), 0.0, "no window with façades")
+    links = [_cameras_between(cameras_xy, arc, a, b) for a, b in zip(centres[:-1], centres[1:])]
+    pick, link_m = _chain(windows, links, cfg, np.diff(centres))
+    for _ in range(2):  # a window off the chain tries its chosen neighbours' placements, then the chain again
+        agree = cfg.agree_m + 0.05 * np.diff(centres)
+        off = np.zeros(len(windows), bool)
+        off[:-1] |= link_m > agree
+        off[1:] |= link_m > agree
+        if not off.any():
+            break
+        for w in np.nonzero(off)[0]:
+            pivot = windows[w][0].pivot
+            tried = [Placement(theta=windows[n][pick[n]].theta, t=windows[n][pick[n]].apply(pivot[None])[0],
+                               pivot=pivot, score=0.0) for n in (w - 1, w + 1) if 0 <= n < len(windows)]
+            windows[w] = sorted(windows[w] + _refine(fine, window_pts[w], tried, cfg, reach=2.0),
+                                key=lambda q: -q.score)
+        pick, link_m = _chain(windows, links, cfg, np.diff(centres))
+    chosen = tuple(windows[w][h] for w, h in enumerate(pick))
+    scores = np.array([p.score for p in chosen])
+    top_share = float(np.mean([h == 0 for h in pick]))
+    if np.median(scores) < cfg.min_score:
+        return RoutePlacement(None, chosen, centres, scores, link_m, top_share,
+                              f"median window score {np.median(scores):.2f} < {cfg.min_score}")
+    prior = _segment_prior(street, seg, s_pt, chosen, centres, cfg)
+    return RoutePlacement(prior, chosen, centres, scores, link_m, top_share)
+
+
+def _facade_cells(street: StreetSegments, cell_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """One façade point per cell of each segment (levelled xy) and its segment index."""
+    pts, seg = [np.zeros((0, 2))], [np.zeros(0, np.int64)]
+    for i, xy in enumerate(street.boundary_xy):  # one iteration per street segment
+        if len(xy) == 0:
+            continue
+        _, first = np.unique(np.floor(np.asarray(xy) / cell_m).astype(np.int64), axis=0, return_index=True)
+        pts.append(np.asarray(xy)[np.sort(first)])
+        seg.append(np.full(len(first), i, np.int64))
+    return np.concatenate(pts), np.concatenate(seg)
+
+
+def _cameras_between(cameras_xy: np.ndarray, arc: np.ndarray, a: float, b: float, n: int = 16) -> np.ndarray:
+    idx = np.nonzero((arc >= a) & (arc <= b))[0]
+    if len(idx) == 0:
+        idx = np.array([int(np.argmin(np.abs(arc - (a + b) / 2)))])
+    return cameras_xy[idx[np.linspace(0, len(idx) - 1, min(n, len(idx))).round().astype(int)]]
+
+
+def _segment_prior(street: StreetSegments, seg: np.ndarray, s_pt: np.ndarray, chosen: tuple[Placement, ...],
+                   centres: np.ndarray, cfg: RoutePriorConfig) -> GpsPrior:
+    """Each segment from the two windows nearest its route position, blended; their disagreement
+    there is its fit residual (the data term widens its radius by it)."""
+    S = len(street)
+    cent = np.asarray(street.centroids, dtype=np.float64).reshape(-1, 2)
+    s_seg = np.array([np.median(s_pt[seg == i]) if np.any(seg == i) else np.nan for i in range(S)])
+    s_seg = np.where(np.isfinite(s_seg), s_seg, np.nanmedian(s_seg) if np.isfinite(s_seg).any() else 0.0)
+    pos, ang, rms = np.zeros((S, 2)), np.zeros(S), np.zeros(S)
+    for i in range(S):  # one iteration per street segment
+        order = np.argsort(np.abs(centres - s_seg[i]))[:2]
+        w = np.maximum(cfg.window_m / 2 - np.abs(centres[order] - s_seg[i]), 1e-3)
+        placed = np.array([chosen[o].apply(cent[i][None])[0] for o in order])
+        pos[i] = (w[:, None] * placed).sum(axis=0) / w.sum()
+        th = np.array([chosen[o].theta for o in order])
+        ang[i] = np.arctan2((w * np.sin(th)).sum(), (w * np.cos(th)).sum())
+        rms[i] = np.linalg.norm(placed[0] - placed[-1]) / 2
+    return GpsPrior(position=pos, angle=ang, n_fixes=len(chosen), sigma_m=cfg.sigma_m, fit_rms_m=rms)
+
+
+def _wrap(a: float) -> float:
+    return float(np.mod(a + np.pi, 2 * np.pi) - np.pi)
