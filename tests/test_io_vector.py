@@ -105,7 +105,7 @@ def test_empty_geojson_gives_no_footprints(tmp_path):
 
 
 @pytest.mark.parametrize("text, match", [
-    ("{not json", "not valid GeoJSON"),
+    ("{not json", "invalid GeoJSON"),
     ('{"features": []}', "no 'type' member"),
     ('{"type": "FeatureCollection"}', "without a 'features' list"),
 ])
@@ -121,9 +121,9 @@ def test_duplicate_ids_and_unknown_format_are_errors(tmp_path):
     (tmp_path / "dup.geojson").write_text(json.dumps(_fc([_feature(sq, 5), _feature(sq, 5)])))
     with pytest.raises(SceneError, match="duplicate building ids"):
         read_footprints(tmp_path / "dup.geojson", CRS)
-    (tmp_path / "x.shp").write_text("")
+    (tmp_path / "x.kml").write_text("")
     with pytest.raises(SceneError, match="unknown footprint format"):
-        read_footprints(tmp_path / "x.shp", CRS)
+        read_footprints(tmp_path / "x.kml", CRS)
     (tmp_path / "garbage.osm").write_text("this is not xml")
     with pytest.raises(SceneError, match="cannot read OSM data"):
         read_footprints(tmp_path / "garbage.osm", CRS)

@@ -1,4 +1,4 @@
-"""Scene folders: read and validate ``scene.yaml`` (contract in DESIGN.md) and load its files.
+"""Scene folders: read and validate ``scene.yaml`` (contract: docs/formats.md) and load its files.
 
 Loaders are cached per (path, mtime) so several stages reading the same DSM pay once.
 """
@@ -6,6 +6,8 @@ Loaders are cached per (path, mtime) so several stages reading the same DSM pay 
 from __future__ import annotations
 
 import functools
+import logging
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -13,7 +15,8 @@ import numpy as np
 import yaml
 
 from toolkit.errors import SceneError
-from toolkit.types import Raster, Scene, SceneFiles, SparseModel
+from toolkit.io.crs import check_metric_crs
+from toolkit.types import Grid, Raster, Scene, SceneFiles, SparseModel
 
 # manifest section → key → SceneFiles field
 MANIFEST_KEYS: dict[str, dict[str, str]] = {
@@ -26,6 +29,7 @@ MANIFEST_KEYS: dict[str, dict[str, str]] = {
 }
 FIELD_TO_MANIFEST = {f: f"{sec}.{k}" for sec, keys in MANIFEST_KEYS.items() for k, f in keys.items()}
 TOP_KEYS = {"scene", "name", "crs", *MANIFEST_KEYS, "synth"}
+log = logging.getLogger("crossview.scene")
 
 
 def load_scene(path: str | Path) -> Scene:
@@ -48,7 +52,7 @@ def load_scene(path: str | Path) -> Scene:
     crs = data.get("crs")
     if not isinstance(crs, str):
         raise SceneError(f"{manifest_path}: 'crs' must be a string like 'EPSG:32617', got {crs!r}")
-    _check_crs(manifest_path, crs)
+    check_metric_crs(manifest_path, crs)
     root = manifest_path.parent.resolve()
     files: dict[str, Path] = {}
     for section, keys in MANIFEST_KEYS.items():
@@ -71,18 +75,6 @@ def load_scene(path: str | Path) -> Scene:
     return Scene(root=root, name=name, crs=crs, files=SceneFiles(**files), manifest=data)
 
 
-def _check_crs(where: Path, crs: str) -> None:
-    from pyproj import CRS
-    from pyproj.exceptions import CRSError
-
-    try:
-        c = CRS.from_user_input(crs)
-    except CRSError as exc:
-        raise SceneError(f"{where}: unknown CRS {crs!r}") from exc
-    if not c.is_projected:
-        raise SceneError(f"{where}: CRS {crs} is not projected (metric); use e.g. a UTM zone")
-
-
 def _yaml_where(exc: yaml.YAMLError) -> str:
     mark = getattr(exc, "problem_mark", None)
     problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
@@ -102,16 +94,61 @@ def _mtime(p: Path) -> float:
     return p.stat().st_mtime_ns
 
 
-@functools.lru_cache(maxsize=8)
-def _raster(path: Path, mtime: float, crs: str) -> Raster:
-    from toolkit.io.raster import read_raster
+# Rasters in another CRS or on another grid are warped onto the scene grid with these kernels.
+RESAMPLING = {"dsm": "bilinear", "ortho": "bilinear", "labels": "nearest"}
+GRID_SOURCES = ("dsm", "labels", "ortho")  # the first the scene names defines the scene grid
 
-    return read_raster(path, expect_crs=crs)
+
+@dataclass(frozen=True)
+class SceneGrid:
+    """The over-view grid of a scene, in its CRS, and the raster (``GRID_SOURCES`` key) it comes from."""
+
+    grid: Grid
+    source: str
+    path: Path
+
+
+def scene_grid(scene: Scene) -> SceneGrid | None:
+    """The DSM's grid, else the label map's, else the ortho's, in the scene CRS at its own GSD
+    (None when the scene names none of them)."""
+    key = next((k for k in GRID_SOURCES if scene.has(k)), None)
+    if key is None:
+        return None
+    p = getattr(scene.files, key)
+    return SceneGrid(_grid(p, _mtime(p), scene.crs), key, p)
+
+
+@functools.lru_cache(maxsize=8)
+def _grid(path: Path, mtime: float, crs: str) -> Grid:
+    from toolkit.io.raster import grid_in_crs, read_header
+
+    return grid_in_crs(read_header(path).grid, crs, path)
+
+
+@functools.lru_cache(maxsize=8)
+def _raster(path: Path, mtime: float, grid: Grid, resampling: str) -> Raster:
+    from toolkit.io.raster import on_grid, read_header, read_raster, warp_raster
+
+    own = read_header(path).grid
+    if on_grid(own, grid):
+        return read_raster(path)
+    log.info("%s: %s; resampled (%s) onto the scene grid, %s", path, _describe(own), resampling, _describe(grid))
+    return warp_raster(path, grid, resampling)
+
+
+def _describe(grid: Grid) -> str:
+    from toolkit.io.crs import axis_units, parse_crs
+
+    unit = axis_units(parse_crs(grid.crs, grid.crs))[0]
+    unit = {"metre": "m", "degree": "°", "US survey foot": "ftUS", "foot": "ft"}.get(unit, f" {unit}")
+    return f"{grid.width}x{grid.height} px of {grid.gsd_m:.6g}{unit} in {grid.crs}"
 
 
 def load_raster(scene: Scene, key: str, who: str = "") -> Raster:
+    """A scene raster on the scene grid: read as it is when it is on it, else reprojected."""
     p = need(scene, key, who or key)
-    return _raster(p, _mtime(p), scene.crs)
+    target = scene_grid(scene)
+    return _raster(p, _mtime(p), target.grid, RESAMPLING[key])
 
 
 @functools.lru_cache(maxsize=4)

@@ -85,6 +85,10 @@ class Stage:
         """Scene file keys (``SceneFiles`` fields) this stage reads. ``"a|b"`` means either one."""
         return ()
 
+    def check_scene(self, scene: Scene) -> None:
+        """What ``__call__`` would reject in the scene files, with this stage's parameters, found from
+        headers before anything is computed (``build()`` runs it after the generic file checks)."""
+
     def holds_gil(self) -> bool:
         """True when the step keeps Python's GIL for most of its run (a C++ solver that does not
         release it): the runner then starts no ``prefetch`` beside it, as that would only wait."""

@@ -1,64 +1,104 @@
 """Cheap header checks of scene files, run by ``build()`` before any computation.
 
-Contents (NaN coordinates, empty geometries) are checked when a stage loads a file; here only what a
-header tells: the file opens, has a CRS equal to the scene's, rasters share the DSM grid, clouds have
-points, the GeoJSON parses, the COLMAP folder is complete.
+Contents (NaN coordinates, empty geometries) are checked when a stage loads a file; here what a
+header tells and what the run would reject later: the file opens, a raster has a CRS and meets the
+scene grid (it is reprojected onto it when needed), clouds have points, footprints are in a known
+format with a usable CRS, the COLMAP folder is complete, GPS fixes name its images, and each
+stage's own checks (``Stage.check_scene``: e.g. the ortho bands ``overview.dsm_tophat`` needs).
 """
 
 from __future__ import annotations
 
-import json
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable
+from typing import Any, Iterable, Sequence
 
 from toolkit.errors import SceneError
 from toolkit.types import Scene
 
 RASTERS = ("dsm", "ortho", "labels")
 CLOUDS = ("street_cloud", "overview_cloud", "truth_lidar")
+FOOTPRINTS = ("footprints", "osm", "truth_buildings")
 
 
-def check_scene_files(scene: Scene, keys: Iterable[str]) -> None:
+@dataclass(frozen=True)
+class GpsMatch:
+    """How many of the GPS fixes name an image of the COLMAP model."""
+
+    matched: int
+    fixes: int
+
+
+def check_scene_files(scene: Scene, keys: Iterable[str], stages: Sequence[Any] = ()) -> None:
     keys = [k for k in dict.fromkeys(keys) if scene.has(k)]
-    grids = {}
     for key in keys:
         path: Path = getattr(scene.files, key)
         if key in RASTERS:
-            grids[key] = _raster_header(path, scene.crs)
+            _raster_header(path)
         elif key in CLOUDS:
             _cloud_header(path)
-        elif key in ("footprints", "truth_buildings"):
-            _geojson(path)
+        elif key in FOOTPRINTS:
+            _footprints(path, scene.crs)
         elif key == "sparse":
             _sparse(path)
-    if "dsm" in grids:
-        for other in ("ortho", "labels"):
-            if other in grids and grids[other] != grids["dsm"]:
-                raise SceneError(f"{getattr(scene.files, other)}: grid {_fmt(grids[other])} differs from "
-                                 f"the DSM grid {_fmt(grids['dsm'])}")
+    if any(k in RASTERS or k in ("footprints", "osm") for k in keys):  # both are read onto the scene grid
+        _rasters_meet_the_grid(scene, [k for k in keys if k in RASTERS])
+    if uses_gps(scene, stages):
+        _gps(scene)
+    for stage in stages:
+        stage.check_scene(scene)
+
+
+def uses_gps(scene: Scene, stages: Sequence[Any]) -> bool:
+    """The data term (a ``unary`` step) pairs street/gps.csv with the COLMAP images when both exist."""
+    return scene.has("gps") and scene.has("sparse") and any(s.kind == "unary" for s in stages)
+
+
+def gps_match(scene: Scene) -> GpsMatch:
+    from toolkit.io.gps import match_images, read_gps_csv
+    from toolkit.scene import load_sparse
+
+    fixes = read_gps_csv(scene.files.gps)
+    model = load_sparse(scene, who="street.gps")
+    return GpsMatch(int((match_images(fixes.names, model.image_names) >= 0).sum()), len(fixes))
+
+
+def _gps(scene: Scene) -> None:
+    found = gps_match(scene)
+    if found.matched == 0:
+        raise SceneError(f"{scene.files.gps}: none of its {found.fixes} fixes names an image of the COLMAP "
+                         f"model {scene.files.sparse} (matched by image name, then by file name)")
+
+
+def _raster_header(path: Path) -> None:
+    from toolkit.io.raster import read_header
+
+    read_header(path)
+
+
+def _rasters_meet_the_grid(scene: Scene, keys: list[str]) -> None:
+    """Every raster must overlap the scene grid it is resampled onto (computing the grid also
+    checks that the raster defining it reprojects to the scene CRS)."""
+    from toolkit.io.raster import overlaps, read_header
+    from toolkit.scene import scene_grid
+
+    target = scene_grid(scene)
+    for key in keys if target is not None else ():
+        path = getattr(scene.files, key)
+        if path != target.path and not overlaps(read_header(path).grid, target.grid):
+            raise SceneError(f"{path}: does not overlap the scene grid, which {target.path.name} defines "
+                             f"({_fmt(target.grid)}); check the CRS and transform of both files")
 
 
 def _fmt(g) -> str:
-    (w, h), t = g
-    return f"{w}x{h} at ({t[2]:.2f}, {t[5]:.2f}) step {t[0]:g}"
+    t = g.transform
+    return f"{g.width}x{g.height} at ({t[2]:.2f}, {t[5]:.2f}) step {t[0]:g} in {g.crs}"
 
 
-def _raster_header(path: Path, crs: str):
-    import rasterio
+def _footprints(path: Path, crs: str) -> None:
+    from toolkit.io.vector import check_footprints
 
-    from toolkit.io.raster import same_crs
-
-    try:
-        with rasterio.open(path) as ds:
-            if ds.crs is None:
-                raise SceneError(f"{path}: GeoTIFF has no CRS")
-            if not same_crs(ds.crs.to_string(), crs):
-                raise SceneError(f"{path}: CRS {ds.crs.to_string()} differs from the scene CRS {crs}")
-            return (ds.width, ds.height), tuple(round(v, 6) for v in tuple(ds.transform)[:6])
-    except SceneError:
-        raise
-    except Exception as exc:
-        raise SceneError(f"{path}: cannot read GeoTIFF ({' '.join(str(exc).split())})") from exc
+    check_footprints(path, crs)
 
 
 def _cloud_header(path: Path) -> None:
@@ -84,15 +124,6 @@ def _cloud_header(path: Path) -> None:
             raise SceneError(f"{path}: point cloud has no points")
     elif suffix != ".pcd":
         raise SceneError(f"{path}: unsupported point cloud format {suffix!r} (use .ply, .las, .laz, .pcd)")
-
-
-def _geojson(path: Path) -> None:
-    try:
-        doc = json.loads(path.read_text())
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise SceneError(f"{path}: invalid GeoJSON ({exc})") from exc
-    if not isinstance(doc, dict) or doc.get("type") not in ("FeatureCollection", "Feature"):
-        raise SceneError(f"{path}: GeoJSON must be a FeatureCollection")
 
 
 def _sparse(path: Path) -> None:

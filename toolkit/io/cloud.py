@@ -1,11 +1,14 @@
 """Point cloud I/O: PLY (binary/ascii, float64 kept), LAS/LAZ (laspy), PCD (Open3D).
 
 ``read_points`` returns (N,3) float64 and never silently drops rows: a file whose points cannot be
-read whole, or that holds NaN/Inf coordinates, is a ``SceneError`` naming the file.
+read whole, or that holds NaN/Inf coordinates, is a ``SceneError`` naming the file. A PLY or PCD
+storing x, y, z as float32 with coordinates beyond ``FLOAT32_WARN_M`` gets a warning naming the
+precision lost (float32 keeps 24 significant bits: 0.5 m steps at a 4.4e6 m northing).
 """
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +21,8 @@ _PLY_TYPES = {
     "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
 }
 CHUNK_BYTES = 64 << 20  # binary PLY records are read and written this many bytes at a time
+FLOAT32_WARN_M = 1e5  # float32 steps are ~8 mm there, and grow with the coordinates
+log = logging.getLogger("crossview.io")
 
 
 def read_points(path: str | Path, with_colors: bool = False, allow_nonfinite: bool = False):
@@ -46,7 +51,45 @@ def read_points(path: str | Path, with_colors: bool = False, allow_nonfinite: bo
     if not allow_nonfinite and not np.isfinite(xyz).all():
         bad = int((~np.isfinite(xyz).all(axis=1)).sum())
         raise SceneError(f"{path}: {bad} points have NaN or Inf coordinates")
+    _warn_float32(path, xyz)
     return (xyz, rgb) if with_colors else xyz
+
+
+def _warn_float32(path: Path, xyz: np.ndarray) -> None:
+    if coordinate_dtype(path) != "f4":
+        return
+    top = max(float(np.nanmax(xyz)), -float(np.nanmin(xyz)))
+    if top > FLOAT32_WARN_M:
+        step_mm = float(np.spacing(np.float32(top))) * 1000
+        log.warning("%s: x, y, z are stored as float32 with coordinates up to %.0f m, which keeps them only "
+                    "to %g mm steps; write them as double, or relative to a local origin", path, top, step_mm)
+
+
+def coordinate_dtype(path: Path) -> str | None:
+    """The numpy dtype code ('f4', 'f8', ...) of x in a PLY or PCD header; None for other formats."""
+    suffix = path.suffix.lower()
+    head = _header_lines(path, b"end_header" if suffix == ".ply" else b"DATA")
+    if suffix == ".ply":
+        return next((_PLY_TYPES.get(w[1]) for w in head if w[:1] == ["property"] and w[-1] == "x"), None)
+    if suffix == ".pcd":
+        fields = {w[0].upper(): w[1:] for w in head if w}
+        names = fields.get("FIELDS", [])
+        if "x" in names and len(fields.get("SIZE", [])) == len(fields.get("TYPE", [])) == len(names):
+            i = names.index("x")
+            return f"{fields['TYPE'][i].lower()}{fields['SIZE'][i]}"
+    return None
+
+
+def _header_lines(path: Path, last: bytes, max_lines: int = 256) -> list[list[str]]:
+    """The words of each header line up to the one starting with ``last`` (binary data never read)."""
+    lines = []
+    with open(path, "rb") as fh:
+        for _ in range(max_lines):
+            line = fh.readline(4096)
+            lines.append(line.decode("ascii", "replace").split())
+            if not line or line.startswith(last):
+                break
+    return lines
 
 
 def _read_ply(path: Path):

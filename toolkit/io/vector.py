@@ -1,7 +1,9 @@
-"""Building footprints from GeoJSON, OSM XML and OSM PBF, projected to a target CRS.
+"""Building footprints from GeoJSON, GeoPackage, Shapefile, OSM XML and OSM PBF, projected to a target CRS.
 
 GeoJSON follows RFC 7946 (lon/lat, WGS 84) unless it carries a legacy ``crs`` member naming
-another CRS. OSM files are read with osmium (``toolkit.io.osm``): closed ways and multipolygon relations tagged
+another CRS; coordinates outside ±180/±90 without one are an error. GeoPackage and Shapefile
+layers are read with pyogrio (GDAL) in the CRS they declare (a Shapefile's ``.prj``); Z is
+dropped. OSM files are read with osmium (``toolkit.io.osm``): closed ways and multipolygon relations tagged
 ``building`` (``building=no`` and ``building:part`` excluded) become areas. Invalid polygons
 are repaired with ``shapely.make_valid(method="structure")`` (counted in ``Footprints.repaired``); geometries that
 stay empty are reported in ``Footprints.skipped``.
@@ -34,6 +36,8 @@ LONLAT = "OGC:CRS84"  # lon/lat axis order, WGS 84 (RFC 7946)
 
 OSM_SUFFIXES = (".osm", ".osm.pbf", ".pbf", ".osm.bz2", ".osm.gz", ".xml", ".o5m", ".opl")
 GEOJSON_SUFFIXES = (".geojson", ".json")
+OGR_SUFFIXES = (".gpkg", ".shp")  # read with pyogrio
+BUILDING_LAYER = re.compile(r"build|bati|geb", re.IGNORECASE)  # picks one of several polygon layers
 
 
 @dataclass(frozen=True)
@@ -59,22 +63,28 @@ class Footprints:
 
 
 def footprint_format(path: str | Path) -> str:
-    """'geojson' or 'osm' from the file name."""
+    """'geojson', 'ogr' (GeoPackage, Shapefile) or 'osm' from the file name."""
     name = Path(path).name.lower()
     if name.endswith(GEOJSON_SUFFIXES):
         return "geojson"
+    if name.endswith(OGR_SUFFIXES):
+        return "ogr"
     if name.endswith(OSM_SUFFIXES):
         return "osm"
-    raise SceneError(f"{path}: unknown footprint format (expected .geojson, .json, .osm or .osm.pbf)")
+    raise SceneError(f"{path}: unknown footprint format {Path(path).suffix or name!r} (expected .geojson or "
+                     ".json (RFC 7946), .gpkg, .shp, .osm or .osm.pbf)")
 
 
 def read_footprints(path: str | Path, target_crs: str) -> Footprints:
-    """Read building footprints from GeoJSON / OSM XML / OSM PBF, projected to ``target_crs``."""
+    """Read building footprints from GeoJSON / GeoPackage / Shapefile / OSM, projected to ``target_crs``."""
     path = Path(path)
     if not path.is_file():
         raise SceneError(f"{path}: file not found")
-    if footprint_format(path) == "geojson":
+    fmt = footprint_format(path)
+    if fmt == "geojson":
         geoms, ids, tags, src_crs, skipped = _read_geojson(path)
+    elif fmt == "ogr":
+        geoms, ids, tags, src_crs, skipped = _read_ogr(path)
     else:
         from toolkit.io.osm import read_osm_buildings
 
@@ -83,12 +93,24 @@ def read_footprints(path: str | Path, target_crs: str) -> Footprints:
     return _finish(path, geoms, ids, tags, src_crs, target_crs, skipped)
 
 
+def check_footprints(path: str | Path, target_crs: str) -> None:
+    """What ``read_footprints`` would reject, without the heavy part (OSM assembly, projection):
+    the format, a GeoJSON's CRS and lon/lat range, a GeoPackage/Shapefile's polygon layer and CRS."""
+    path = Path(path)
+    fmt = footprint_format(path)
+    if fmt == "geojson":
+        geoms, _, _, src_crs, _ = _read_geojson(path)
+        _check_lonlat(path, np.array(geoms, dtype=object), src_crs, target_crs)
+    elif fmt == "ogr":
+        _ogr_layer(path)
+
+
 # --- GeoJSON ------------------------------------------------------------------------------------
 def _read_geojson(path: Path) -> tuple[list, list[OsmKey], list[dict], str, list[str]]:
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise SceneError(f"{path}: not valid GeoJSON ({exc})") from exc
+        raise SceneError(f"{path}: invalid GeoJSON ({' '.join(str(exc).split())})") from exc
     if not isinstance(doc, dict) or "type" not in doc:
         raise SceneError(f"{path}: not a GeoJSON object (no 'type' member)")
     src_crs = _geojson_crs(path, doc.get("crs"))
@@ -161,15 +183,70 @@ def _parse_id(value: Any, osm_type: Any = None) -> OsmKey:
     return (False, None)
 
 
+# --- GeoPackage, Shapefile (pyogrio) ------------------------------------------------------------
+def _read_ogr(path: Path) -> tuple[list, list[OsmKey], list[dict], str, list[str]]:
+    import pyogrio.raw
+
+    layer, crs = _ogr_layer(path)
+    try:
+        meta, _, wkb, columns = pyogrio.raw.read(path, layer=layer)
+    except Exception as exc:  # GDAL's errors: corrupt file, missing .shx/.dbf
+        raise SceneError(f"{path}: cannot read layer {layer!r} ({' '.join(str(exc).split())})") from exc
+    parsed = shapely.force_2d(shapely.from_wkb(wkb))
+    values = [np.asarray(c).tolist() for c in columns]
+    geoms, ids, tags, skipped = [], [], [], []
+    for k, g in enumerate(parsed):
+        gtype = None if g is None else g.geom_type
+        if gtype not in ("Polygon", "MultiPolygon"):
+            skipped.append(f"feature {k}: geometry {gtype} is not a polygon")
+            continue
+        props = {name: col[k] for name, col in zip(meta["fields"], values)}
+        geoms.append(g)
+        ids.append(_feature_id(None, props))
+        tags.append(props)
+    return geoms, ids, tags, crs, skipped
+
+
+def _ogr_layer(path: Path) -> tuple[str, str]:
+    """(name, CRS) of the building layer: the file's only polygon layer, else the one named like buildings."""
+    import pyogrio
+
+    try:
+        layers = [(str(name), str(gtype)) for name, gtype in pyogrio.list_layers(path)]
+    except Exception as exc:
+        raise SceneError(f"{path}: cannot open ({' '.join(str(exc).split())})") from exc
+    polygonal = [name for name, gtype in layers if "Polygon" in gtype]
+    if len(polygonal) > 1:
+        polygonal = [name for name in polygonal if BUILDING_LAYER.search(name)] or polygonal
+    listed = ", ".join(f"{name} ({gtype})" for name, gtype in layers) or "none"
+    if len(polygonal) != 1:
+        what = "no polygon layer" if not polygonal else "several polygon layers"
+        raise SceneError(f"{path}: {what} (layers: {listed}); keep one layer of building polygons in the file")
+    crs = pyogrio.read_info(path, layer=polygonal[0])["crs"]
+    if crs is None:
+        fix = "add its .prj" if path.suffix.lower() == ".shp" else "assign one"
+        raise SceneError(f"{path}: layer {polygonal[0]!r} has no CRS; {fix} (e.g. ogr2ogr -a_srs EPSG:… out{path.suffix} {path.name})")
+    return polygonal[0], crs
+
+
 # --- common -------------------------------------------------------------------------------------
+def _check_lonlat(path: Path, geoms: np.ndarray, src_crs: str, target_crs: str) -> None:
+    """Coordinates read as lon/lat must be within ±180/±90: projected ones need a ``crs`` member."""
+    if src_crs != LONLAT or not len(geoms):
+        return
+    minx, miny, maxx, maxy = shapely.total_bounds(geoms)
+    if min(minx, miny) < -180 or maxx > 180 or maxy > 90 or miny < -90:
+        member = json.dumps({"crs": {"type": "name", "properties": {"name": target_crs}}})[1:-1]
+        raise SceneError(f"{path}: coordinates are not lon/lat (x {minx:.0f}..{maxx:.0f}, y {miny:.0f}..{maxy:.0f}) "
+                         f"and there is no 'crs' member; RFC 7946 GeoJSON is lon/lat: reproject it (ogr2ogr -s_srs "
+                         f"<its CRS> -t_srs EPSG:4326 out.geojson {path.name}) or, if it is in {target_crs}, add "
+                         f"the member {member}")
+
+
 def _finish(path: Path, geoms: list, ids: list[OsmKey], tags: list[dict], src_crs: str,
             target_crs: str, skipped: list[str]) -> Footprints:
     arr = np.array(geoms, dtype=object) if geoms else np.empty(0, dtype=object)
-    if src_crs == LONLAT and len(arr):
-        minx, miny, maxx, maxy = shapely.total_bounds(arr)
-        if min(minx, miny) < -180 or maxx > 180 or maxy > 90 or miny < -90:
-            raise SceneError(f"{path}: coordinates are not lon/lat (x {minx:.0f}..{maxx:.0f}, y {miny:.0f}..{maxy:.0f}); "
-                             "RFC 7946 GeoJSON is lon/lat, or add a 'crs' member naming the projected CRS")
+    _check_lonlat(path, arr, src_crs, target_crs)
     try:
         arr = project(arr, src_crs, target_crs)
     except SceneError as exc:

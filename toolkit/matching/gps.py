@@ -8,13 +8,11 @@ pair with the fixes projected to the scene CRS. For each street segment a weight
 
 from __future__ import annotations
 
-import csv
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from toolkit.errors import SceneError
 from toolkit.types import StreetSegments
 
 
@@ -37,21 +35,11 @@ class GpsPrior:
 
 
 def read_gps_csv(path: Path) -> tuple[list[str], np.ndarray, np.ndarray]:
-    """Names, (N,2) lon/lat, (N,) sigma_m (NaN when absent)."""
-    try:
-        with open(path, newline="") as f:
-            rows = list(csv.DictReader(f))
-    except OSError as exc:
-        raise SceneError(f"{path}: cannot read GPS fixes ({exc})") from exc
-    if rows and not {"image_name", "lon", "lat"} <= set(rows[0]):
-        raise SceneError(f"{path}: expected columns image_name,lon,lat[,sigma_m], got {list(rows[0])}")
-    try:
-        names = [r["image_name"].strip() for r in rows]
-        lonlat = np.array([[float(r["lon"]), float(r["lat"])] for r in rows]).reshape(-1, 2)
-        sigma = np.array([float(r.get("sigma_m") or "nan") for r in rows])
-    except (ValueError, TypeError) as exc:
-        raise SceneError(f"{path}: non-numeric lon/lat/sigma_m ({exc})") from exc
-    return names, lonlat, sigma
+    """Names, (N,2) lon/lat, (N,) sigma_m (NaN when absent); layouts in ``toolkit.io.gps``."""
+    from toolkit.io.gps import read_gps_csv as read_fixes
+
+    fixes = read_fixes(path)
+    return list(fixes.names), fixes.lonlat, fixes.sigma_m
 
 
 def rigid_fit_2d(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -79,18 +67,19 @@ def gps_prior(scene, street: StreetSegments, n_local: int = 100, default_sigma_m
     """The prior, or None (with a warning) when fewer than 3 fixes match COLMAP images."""
     from pyproj import Transformer
 
+    from toolkit.io.gps import match_images
     from toolkit.scene import load_sparse
 
     path = scene.files.gps
     names, lonlat, sigma = read_gps_csv(path)
     model = load_sparse(scene, who="unary.distance_map (GPS pruning)")
-    index = {n: i for i, n in enumerate(model.image_names)}
-    hit = np.array([n in index for n in names], dtype=bool)
+    image = match_images(names, model.image_names)  # exact names, else file names
+    hit = image >= 0
     if hit.sum() < 3:
         if warn:
             warn(f"{path}: {int(hit.sum())} fix(es) match images of the COLMAP model; GPS pruning off")
         return None
-    cam = street.level(model.centres[[index[n] for n, h in zip(names, hit) if h]])[:, :2]
+    cam = street.level(model.centres[image[hit]])[:, :2]
     tr = Transformer.from_crs("EPSG:4326", scene.crs, always_xy=True)
     east, north = tr.transform(lonlat[hit, 0], lonlat[hit, 1])
     world = np.stack([east, north], axis=1)

@@ -20,13 +20,27 @@ ROLE_OF_ALIAS = {alias: role for role, aliases in BAND_ALIASES.items() for alias
 def band_roles(raster: Raster, bands: tuple[str, ...] | None, path: object, who: str,
                required: tuple[str, ...] = ("red", "nir")) -> dict[str, int]:
     """Role → band index, from ``bands`` (the stage parameter) or else the band descriptions."""
-    count = raster.data.shape[0]
+    return roles_of_bands(raster.data.shape[0], raster.band_names, bands, path, who, required)
+
+
+def check_ortho_bands(scene: Scene, who: str, bands: tuple[str, ...] | None,
+                      required: tuple[str, ...] = ("red", "nir")) -> None:
+    """What ``band_roles`` would reject, from the ortho's header alone (run by ``build()``)."""
+    from toolkit.io.raster import read_header
+
+    path = need(scene, "ortho", who)
+    header = read_header(path)
+    roles_of_bands(header.count, header.band_names, bands, path, who, required)
+
+
+def roles_of_bands(count: int, band_names: tuple[str, ...], bands: tuple[str, ...] | None, path: object,
+                   who: str, required: tuple[str, ...]) -> dict[str, int]:
     if bands is not None:
         if len(bands) != count:
             raise SceneError(f"{path}: has {count} bands but {who} params.bands lists {len(bands)} ({', '.join(bands)})")
         names, origin = [b.strip().lower() for b in bands], "params.bands"
     else:
-        names, origin = list(raster.band_names), "band descriptions"
+        names, origin = list(band_names), "band descriptions"
     roles: dict[str, int] = {}
     for i, name in enumerate(names):
         role = ROLE_OF_ALIAS.get(name)
@@ -36,8 +50,19 @@ def band_roles(raster: Raster, bands: tuple[str, ...] | None, path: object, who:
     if missing:
         found = ", ".join(repr(n) for n in names) if any(names) else "none"
         raise SceneError(f"{path}: cannot find the {' and '.join(missing)} band(s) of this {count}-band ortho "
-                         f"({origin}: {found}); set {who} params.bands, e.g. [red, green, blue, nir]")
+                         f"({origin}: {found}); {_bands_fix(count, roles, missing, who)}")
     return roles
+
+
+def _bands_fix(count: int, roles: dict[str, int], missing: list[str], who: str) -> str:
+    named = "set" if roles else "describe its bands in the GeoTIFF (red, green, blue, nir) or set"
+    fix = f"{named} {who} params.bands to the roles in file order, e.g. [red, green, blue, nir]"
+    described_rgb = {"red", "green", "blue"} <= set(roles)
+    if "nir" in missing and (count == 3 or described_rgb):
+        use_dsm = (f"an RGB-only ortho has no near-infrared band for NDVI: set use_ortho: false in the "
+                   f"params of {who} (buildings from the DSM alone)")
+        return use_dsm if described_rgb else f"{use_dsm}, or {fix}"
+    return fix
 
 
 def load_ortho(scene: Scene, who: str, bands: tuple[str, ...] | None, grid: Grid,
@@ -105,8 +130,9 @@ def grid_from_bounds(bounds: tuple[float, float, float, float], gsd_m: float, cr
 
 
 def scene_grid(scene: Scene, who: str) -> Grid | None:
-    """The over-view grid of the scene: the DSM's, else the ortho's, else the label map's."""
-    for key in ("dsm", "ortho", "labels"):
-        if scene.has(key):
-            return load_raster(scene, key, who).grid
-    return None
+    """The over-view grid of the scene (``toolkit.scene.scene_grid``), which every scene raster is
+    read onto; None when the scene has no raster."""
+    from toolkit.scene import scene_grid as grid_of
+
+    found = grid_of(scene)
+    return None if found is None else found.grid
