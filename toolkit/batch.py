@@ -4,6 +4,10 @@ A ``LocalCluster`` by default (``--workers N``, one thread each, separate proces
 scheduler (``--scheduler tcp://host:8786``). Each scene writes its own output folder as ``run`` does;
 a failing scene becomes a row with its error, the others go on. The summary is written as
 ``summary.csv`` and ``summary.md`` in the batch folder and printed.
+
+A row's ``status`` is the run's self-assessment (``ok`` | ``unreliable``, with its ``confidence``
+and main ``reason``; ``toolkit.status``) or, when the scene did not finish, ``failed`` (a user error)
+| ``error`` (a bug). An unreliable scene is a finished scene: only failed ones set the exit code.
 """
 
 from __future__ import annotations
@@ -40,11 +44,15 @@ def run_one(recipe_path: str, scene_dir: str, out_dir: str, overrides: list[str]
     from toolkit.runner import run_recipe
     from toolkit.summary import lookup
 
-    row: dict[str, Any] = {"scene": scene_label(Path(scene_dir)), "status": "ok", "error": ""}
+    row: dict[str, Any] = {"scene": scene_label(Path(scene_dir)), "status": "ok", "confidence": None,
+                           "reason": "", "error": ""}
     t0 = time.perf_counter()
     try:
         res = run_recipe(recipe_path, scene=scene_dir, out=out_dir, overrides=overrides,
                          overwrite=overwrite, rerun=False)
+        if res.assessment is not None:
+            row.update(status=res.assessment.status, confidence=res.assessment.confidence,
+                       reason=res.assessment.main_reason if not res.assessment.reliable else "")
         metrics = res.results.get("metrics")
         values = dict(metrics.values) if metrics is not None else {}
         for col, path in COLUMNS:
@@ -194,17 +202,26 @@ def run(args: argparse.Namespace) -> int:
     out_root = args.out or Path("out") / f"{name}-batch"
     rows = run_batch(args.recipe, scenes, out_root, workers=args.workers, scheduler=args.scheduler,
                      overrides=args.overrides, overwrite=args.overwrite, progress=not args.quiet)
-    cols = ["scene", "status", *[c for c, _ in COLUMNS], "seconds", "error"]
+    cols = ["scene", "status", "confidence", *[c for c, _ in COLUMNS], "seconds", "error"]
     print(markdown_table(rows, cols), end="")
     print(f"summary: {out_root / 'summary.csv'}  {out_root / 'summary.md'}")
-    bad = [r for r in rows if r["status"] != "ok"]
+    return exit_code(rows)
+
+
+FAILED = ("failed", "error")  # row statuses of scenes that did not finish (ok / unreliable did)
+
+
+def exit_code(rows: list[dict[str, Any]]) -> int:
+    """0 when every scene finished (ok or unreliable), 3 when some failed, 2 when all failed."""
+    bad = [r for r in rows if r["status"] in FAILED]
     return 0 if not bad else 3 if len(bad) < len(rows) else 2
 
 
 def register(subparsers: Any) -> None:
     p = subparsers.add_parser("batch", help="run one recipe over many scenes on Dask",
                               description="Run a recipe over many scene folders on dask.distributed. "
-                              "Exit code 0 when all scenes succeed, 3 when some failed, 2 when all failed.")
+                              "Exit code 0 when every scene finished (its status ok or unreliable), 3 when "
+                              "some failed, 2 when all failed.")
     p.add_argument("recipe", type=Path)
     p.add_argument("--scenes", required=True, help="glob of scene folders or scene.yaml files (quote it)")
     grp = p.add_mutually_exclusive_group()

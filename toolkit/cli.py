@@ -6,7 +6,9 @@ User errors print one line and exit 2; ``--debug`` shows the traceback instead.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import logging
 import sys
 from pathlib import Path
 from typing import Sequence
@@ -27,22 +29,33 @@ def _add_run_args(p: argparse.ArgumentParser) -> None:
 def cmd_run(args: argparse.Namespace) -> int:
     from toolkit.observe import ProgressObserver
     from toolkit.runner import run_recipe
+    from toolkit.status import EXIT_UNRELIABLE, verdict_line
     from toolkit.summary import print_summary
 
     obs = ProgressObserver(quiet=args.quiet)
     res = run_recipe(args.recipe, scene=args.scene, out=args.out, overrides=args.overrides,
                      observer=obs, overwrite=args.overwrite, rerun=False if args.no_rerun else None)
     print_summary(res)
-    return 0
+    line = verdict_line(res.assessment)
+    if line is None:
+        return 0
+    sys.stdout.flush()  # the verdict must be the last line, after the summary on stdout
+    print(line, file=sys.stderr)
+    return EXIT_UNRELIABLE
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
     from toolkit.recipe import load_recipe
     from toolkit.runner import build
+    from toolkit.validate import gps_match, uses_gps
 
     plan = build(load_recipe(args.recipe, args.overrides), scene=args.scene)
     print(f"{args.recipe}: ok — scene {plan.scene.root} ({plan.scene.crs}), "
           f"{len(plan.stages)} steps: {', '.join(s.use for s, _ in plan.stages)}")
+    stages = [stage for _, stage in plan.stages]
+    if uses_gps(plan.scene, stages):
+        found = gps_match(plan.scene)
+        print(f"gps: {found.matched} of {found.fixes} fixes match images")
     return 0
 
 
@@ -76,6 +89,41 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return run_demo(preset=args.preset, seed=args.seed, quiet=args.quiet)
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("crossview-toolkit")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
+
+
+class OneLineHandler(logging.Handler):
+    """Notes and warnings of the ``crossview.*`` loggers (readers: a raster reprojected, a float32
+    cloud) as one stderr line each."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            level = "note" if record.levelno < logging.WARNING else record.levelname.lower()
+            print(f"crossview: {level}: {' '.join(record.getMessage().split())}", file=sys.stderr)
+        except Exception:
+            self.handleError(record)
+
+
+@contextlib.contextmanager
+def reader_messages(quiet: bool):
+    """Show the readers' notes (INFO) and warnings for the duration of a command; ``-q`` hides both."""
+    logger = logging.getLogger("crossview")
+    handler, level = OneLineHandler(logging.ERROR if quiet else logging.INFO), logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+
+
 class OneLineParser(argparse.ArgumentParser):
     """argparse, but a usage error is one line (and exit code 2, as argparse does)."""
 
@@ -88,6 +136,7 @@ def build_parser() -> argparse.ArgumentParser:
         "Register street-view point clouds onto over-view data (DSM, OSM, label maps) "
         "by graph matching of building segments."))
     parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
+    parser.add_argument("--version", action="version", version=f"crossview {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=OneLineParser)
     sub.required = True
 
@@ -103,6 +152,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("validate", help="check a recipe and its scene without running",
                        description="Validate stage names, parameters, step order and scene files.")
     _add_run_args(p)
+    p.add_argument("-q", "--quiet", action="store_true", help="no notes or warnings")
     p.set_defaults(func=cmd_validate)
 
     p = sub.add_parser("stages", help="list registered stages", description="List every stage.")
@@ -134,7 +184,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         parser = build_parser()
         args = parser.parse_args(argv)
-        return int(args.func(args) or 0)
+        with reader_messages(getattr(args, "quiet", False)):
+            return int(args.func(args) or 0)
     except CrossviewError as exc:
         if debug:
             raise

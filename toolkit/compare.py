@@ -9,7 +9,9 @@ compares DSM vs OSM vs label maps; ``--grid`` runs every combination instead) an
 ``OUT/runs/<scene>/<variant>/``; the comparison writes ``OUT/table.md`` and ``OUT/table.csv`` (one
 row per variant, mean over scenes, ± std in the markdown when there are several), ``OUT/runs.csv``
 (one row per run) and ``OUT/recording.rrd`` (the first scene's runs, each under ``/<variant>/``, with
-a side-by-side blueprint).
+a side-by-side blueprint). Each run's self-assessment (``toolkit.status``) gives the ``status`` and
+``confidence`` columns: per variant, ``ok``/``unreliable`` when all its runs agree, else ``k/n
+unreliable``, and the mean confidence. An unreliable run is not a failed one.
 """
 
 from __future__ import annotations
@@ -49,7 +51,7 @@ MD_HEADERS = {
     "chamfer_2d_std_m": "2D std", "paired_fraction": "paired", "error_h_median_m": "err h median (m)",
     "error_3d_mean_m": "err 3D mean (m)", "error_3d_p95_m": "err 3D p95 (m)", "within_1m_h": "≤1 m (h)",
     "match_precision": "precision", "match_recall": "recall", "camera_median_m": "camera (m)",
-    "time_total_s": "time (s)",
+    "time_total_s": "time (s)", "confidence": "confidence",
 }
 
 
@@ -72,6 +74,8 @@ class RunRow:
     error: str | None = None
     out_dir: Path | None = None
     seconds: float | None = None  # the run's wall time: steps may overlap, so not their sum
+    status: str | None = None  # the self-assessment: "ok" | "unreliable" (None: failed or not assessed)
+    confidence: float | None = None
 
 
 # --- planning ---------------------------------------------------------------------------------
@@ -218,6 +222,8 @@ def run_variants(variants: Sequence[Variant], scenes: Sequence[Path | None], out
                     row.timings = dict(res.timings)
                     row.out_dir = res.out_dir
                     row.seconds = time.perf_counter() - t0
+                    if res.assessment is not None:
+                        row.status, row.confidence = res.assessment.status, res.assessment.confidence
                 except Exception as exc:  # noqa: BLE001 — one failing variant must not lose the others
                     if isinstance(exc, CrossviewError):
                         row.error = str(exc)
@@ -235,7 +241,8 @@ def run_variants(variants: Sequence[Variant], scenes: Sequence[Path | None], out
 
 # --- tables -----------------------------------------------------------------------------------
 def run_record(row: RunRow) -> dict[str, Any]:
-    rec: dict[str, Any] = {"variant": row.variant, "scene": row.scene}
+    rec: dict[str, Any] = {"variant": row.variant, "scene": row.scene, "status": row.status,
+                           "confidence": row.confidence}
     for col, path in METRIC_COLUMNS:
         v = lookup(row.values, path)
         rec[col] = float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
@@ -257,14 +264,24 @@ def aggregate(rows: Sequence[RunRow], variants: Sequence[Variant]) -> list[dict[
         mine = [r for r in records if r["variant"] == v.name]
         ok = [r for r in mine if not r["error"]]
         agg: dict[str, Any] = {"variant": v.name, "description": v.description, "n_runs": len(ok),
-                               "n_failed": len(mine) - len(ok)}
-        for col in [c for c, _ in METRIC_COLUMNS] + ["time_total_s"] + time_cols:
+                               "n_failed": len(mine) - len(ok), "status": variant_status(ok)}
+        for col in ["confidence"] + [c for c, _ in METRIC_COLUMNS] + ["time_total_s"] + time_cols:
             vals = np.array([r[col] for r in ok if r.get(col) is not None], float)
             agg[col] = float(vals.mean()) if len(vals) else None
             agg[f"{col}__std"] = float(vals.std()) if len(vals) > 1 else None
         agg["error"] = "; ".join(sorted({r["error"] for r in mine if r["error"]}))
         out.append(agg)
     return out
+
+
+def variant_status(records: Sequence[dict[str, Any]]) -> str | None:
+    """"ok" / "unreliable" when every assessed run says so, else "k/n unreliable" (None: none assessed)."""
+    statuses = [r["status"] for r in records if r.get("status")]
+    if not statuses:
+        return None
+    if len(set(statuses)) == 1:
+        return statuses[0]
+    return f"{statuses.count('unreliable')}/{len(statuses)} unreliable"
 
 
 def _step_order(col: str) -> int:
@@ -278,6 +295,8 @@ def _md_cell(value: float | None, std: float | None, col: str) -> str:
     if value is None:
         return "—"
     pct = col in ("paired_fraction", "within_1m_h", "match_precision", "match_recall")
+    if isinstance(value, str):
+        return value
     text = f"{100 * value:.0f} %" if pct else (f"{value:.1f}" if col.startswith("time") else f"{value:.2f}")
     if std is not None:
         text += f" ± {100 * std:.0f}" if pct else f" ± {std:.2f}"
@@ -285,7 +304,8 @@ def _md_cell(value: float | None, std: float | None, col: str) -> str:
 
 
 def markdown_table(agg: Sequence[dict[str, Any]], n_scenes: int) -> str:
-    cols = [c for c, _ in METRIC_COLUMNS if any(a.get(c) is not None for a in agg)] + ["time_total_s"]
+    cols = [c for c in ("status", "confidence") if any(a.get(c) is not None for a in agg)]
+    cols += [c for c, _ in METRIC_COLUMNS if any(a.get(c) is not None for a in agg)] + ["time_total_s"]
     lines = [f"Comparison over {n_scenes} scene(s); mean" + (" ± std over scenes" if n_scenes > 1 else "") + ".",
              "",
              "| variant | " + " | ".join(MD_HEADERS.get(c, c) for c in cols) + " |",

@@ -1,8 +1,13 @@
-"""``crossview demo`` / ``make demo``: synthesise the built-in scene once, run recipes/demo.yaml on it."""
+"""``crossview demo`` / ``make demo``: synthesise the built-in scene once, run recipes/demo.yaml on it.
+
+The summary shows the run's self-assessment (``toolkit.status``); an unreliable demo exits 4 as
+``crossview run`` does.
+"""
 
 from __future__ import annotations
 
 import dataclasses
+import sys
 import time
 from pathlib import Path
 
@@ -30,6 +35,7 @@ def run_demo(preset: str = "campus", seed: int = 0, quiet: bool = False) -> int:
     from toolkit.observe import ProgressObserver
     from toolkit.recipe import load_recipe
     from toolkit.runner import run_recipe
+    from toolkit.status import EXIT_UNRELIABLE, verdict_line
     from toolkit.summary import print_summary
 
     console = Console(stderr=True)
@@ -54,4 +60,9 @@ def run_demo(preset: str = "campus", seed: int = 0, quiet: bool = False) -> int:
                      observer=ProgressObserver(quiet=quiet), recipe=recipe)
     print_summary(res)
     console.print(f"demo finished in {time.perf_counter() - t0:.1f} s")
-    return 0
+    line = verdict_line(res.assessment)
+    if line is None:
+        return 0
+    sys.stdout.flush()  # as crossview run: the verdict is the last line
+    console.print(line, markup=False, highlight=False)
+    return EXIT_UNRELIABLE

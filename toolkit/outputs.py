@@ -79,8 +79,13 @@ def coverage(results: dict[str, Any]) -> dict[str, Any] | None:
 
 
 def write_outputs(out: Path, plan, results: dict[str, Any], timings: dict[str, float],
-                  warnings: list[str]) -> None:
+                  warnings: list[str], assessment=None) -> None:
+    """``assessment``: the run's ``toolkit.status.Assessment`` (assessed here when None)."""
     from toolkit.io.cloud import write_ply
+    from toolkit.status import assess
+
+    if assessment is None:
+        assessment = assess(results, plan.scene)
 
     cov = coverage(results)
     if cov is not None and cov["n_street_segments"] and cov["registered_share"] < PARTIAL_SHARE:
@@ -103,7 +108,9 @@ def write_outputs(out: Path, plan, results: dict[str, Any], timings: dict[str, f
         write_model(cameras.model, out / "sparse", binary=False)
         write_model(cameras.model, out / "sparse", binary=True)
     metrics = results.get("metrics")
-    metrics_values: dict[str, Any] = dict(metrics.values) if metrics is not None else {}
+    # the self-assessment first: it is what a user without truth reads
+    metrics_values: dict[str, Any] = assessment.to_json()
+    metrics_values.update(metrics.values if metrics is not None else {})
     if cov is not None:
         metrics_values["coverage"] = cov
     metrics_values["warnings"] = list(warnings)
@@ -111,20 +118,22 @@ def write_outputs(out: Path, plan, results: dict[str, Any], timings: dict[str, f
     # timings vary run to run: kept apart so metrics.json is reproducible byte for byte
     dump_json(out / "timings.json", {k: round(v, 3) for k, v in timings.items()})
     (out / "recipe.yaml").write_text(plan.recipe.to_yaml())
-    _write_log(out / "run.log", plan, timings, warnings)
-    _write_report(out, plan, results, timings, warnings)
+    _write_log(out / "run.log", plan, timings, warnings, assessment)
+    _write_report(out, plan, results, timings, warnings, assessment)
 
 
-def _write_log(path: Path, plan, timings: dict[str, float], warnings: list[str]) -> None:
+def _write_log(path: Path, plan, timings: dict[str, float], warnings: list[str], assessment) -> None:
     lines = [f"crossview run {plan.recipe.name} on {plan.scene.root} ({plan.scene.crs})",
              f"finished {time.strftime('%Y-%m-%d %H:%M:%S')} on {platform.node()}"]
     for spec, _ in plan.stages:
         lines.append(f"step {spec.name:9s} {spec.use:24s} {timings.get(spec.name, float('nan')):8.2f} s")
     lines += [f"warning: {w}" for w in warnings]
+    lines.append(f"status: {assessment.status} (confidence {assessment.confidence:.2f})")
+    lines += [f"reason: {r}" for r in assessment.reasons]
     path.write_text("\n".join(lines) + "\n")
 
 
-def _write_report(out: Path, plan, results, timings, warnings) -> None:
+def _write_report(out: Path, plan, results, timings, warnings, assessment) -> None:
     import importlib.util
 
     if importlib.util.find_spec("toolkit.report") is None:
@@ -139,7 +148,7 @@ def _write_report(out: Path, plan, results, timings, warnings) -> None:
         street=results.get("street"), matches=results.get("matches"),
         transforms=results.get("transforms"), registration=results.get("registration"),
         metrics=results.get("metrics"), timings=timings, warnings=warnings,
-        street_points=street_points,
+        street_points=street_points, assessment=assessment,
     ))
 
 

@@ -40,6 +40,7 @@ class ReportContext:
     warnings: list[str] = field(default_factory=list)
     street_points: np.ndarray | None = None  # input street frame, input order
     title: str | None = None
+    assessment: Any = None  # toolkit.status.Assessment: the truth-free self-assessment, shown first
 
 
 # (label, dotted path in metrics values, format)
@@ -52,6 +53,22 @@ HEADLINE: tuple[tuple[str, str, str], ...] = (
     ("points within 1 m (horizontal)", "truth.within_m.1.horizontal", "{:.0%}"),
     ("match precision / recall", "matching.precision|matching.recall", "{:.0%} / {:.0%}"),
     ("camera centre error, median", "cameras.centre_error_median_m", "{:.2f} m"),
+)
+
+
+# Truth-free figures of the self-assessment: (label, "|"-joined figure keys, format)
+ASSESSMENT_CARDS: tuple[tuple[str, str, str], ...] = (
+    ("street segments / points registered", "registered_share|registered_point_share", "{:.0%} / {:.0%}"),
+    ("façade points on an over-view outline", "facade_support_share", "{:.0%}"),
+    ("façade distance to an outline, median", "facade_distance_median_m", "{:.2f} m"),
+    ("neighbour disagreement, median", "neighbour_gap_median_m", "{:.2f} m"),
+    ("neighbour pairs disagreeing", "neighbour_disagree_share", "{:.0%}"),
+    ("segments matched / vote confidence", "matched_share|match_confidence_mean", "{:.0%} / {:.2f}"),
+    ("matching converged (iterations)", "bp_converged|bp_iterations", "{} ({})"),
+    ("points outside the over-view data", "outside_grid_share", "{:.1%}"),
+    ("camera spread, median / p95", "camera_spread_median_m|camera_spread_p95_m", "{:.2f} / {:.2f} m"),
+    ("BA reprojection RMS, before / after", "ba_rms_before_px|ba_rms_after_px", "{:.2f} / {:.2f} px"),
+    ("GPS residual of the cameras, median", "gps_residual_median_m", "{:.2f} m"),
 )
 
 
@@ -156,6 +173,30 @@ def _fmt(v: Any, spec: str = "{:.2f}") -> str:
     return html.escape(str(v))
 
 
+def _assessment(assessment: Any) -> str:
+    """Status, confidence, reasons and the figures of the self-assessment (empty without one)."""
+    if assessment is None:
+        return ""
+    f = assessment.figures
+    ok = assessment.status == "ok"
+    cards = [f'<div class="card"><div class="v {"good" if ok else "bad"}">{html.escape(assessment.status)}</div>'
+             f'<div class="l">status</div></div>',
+             f'<div class="card"><div class="v">{assessment.confidence:.2f}</div><div class="l">confidence</div></div>']
+    for label, keys, fmt in ASSESSMENT_CARDS:
+        parts = [f.get(k) for k in keys.split("|")]
+        if any(v is None for v in parts):
+            continue
+        parts = ["yes" if v is True else "no" if v is False else v for v in parts]
+        cards.append(f'<div class="card"><div class="v">{html.escape(fmt.format(*parts))}</div>'
+                     f'<div class="l">{html.escape(label)}</div></div>')
+    reasons = "".join(f'<li class="{"warn" if ok else "bad"}">{html.escape(r)}</li>' for r in assessment.reasons)
+    return ("<h2>Self-assessment (no truth needed)</h2>"
+            '<div class="cards">' + "".join(cards) + "</div>" + (f"<ul>{reasons}</ul>" if reasons else "") +
+            '<p class="note">Measured from the outputs alone (façades against the over-view outlines, '
+            "neighbouring transforms against each other, cameras against GPS): "
+            "see docs/status.md; every figure is in metrics.json under <code>assessment</code>.</p>")
+
+
 def _headline(values: dict) -> str:
     cards = []
     for label, path, fmt in HEADLINE:
@@ -165,7 +206,8 @@ def _headline(values: dict) -> str:
         cards.append(f'<div class="card"><div class="v">{html.escape(fmt.format(*parts))}</div>'
                      f'<div class="l">{html.escape(label)}</div></div>')
     if not cards:
-        return '<p class="missing">No metrics: the recipe has no evaluate step, or it had nothing to compare with.</p>'
+        return ('<p class="missing">No metrics against a reference cloud or truth: the recipe has no evaluate '
+                "step, or it had nothing to compare with.</p>")
     html_cards = '<div class="cards">' + "".join(cards) + "</div>"
     paired = lookup(values, "chamfer.3d.paired_fraction")
     if isinstance(paired, (int, float)):
@@ -256,6 +298,7 @@ def _page(c: ReportContext, values: dict, rows: list[dict], figures, missing: li
     parts = [
         f"<h1>crossview report — {html.escape(name)}</h1>",
         f'<p class="sub">{scene_line}<br>{" · ".join(counts) or "nothing computed"}</p>',
+        _assessment(c.assessment),
         "<h2>Results</h2>", _headline(values),
         "<h2>Figures</h2>", '<div class="figs">', *(_figure_html(*f) for f in figures), "</div>",
     ]
@@ -285,7 +328,8 @@ h1{font-size:1.6em;margin:.2em 0}h2{border-bottom:2px solid #dde;padding-bottom:
 h3{margin:.2em 0 .4em}.sub{color:#555}
 .cards{display:flex;flex-wrap:wrap;gap:10px}.card{background:#fff;border:1px solid #dde;border-radius:8px;
 padding:10px 14px;min-width:170px;box-shadow:0 1px 2px #0001}.card .v{font-size:1.45em;font-weight:600;color:#1f4e79}
-.card .l{font-size:.85em;color:#666}
+.card .l{font-size:.85em;color:#666}.card .v.good{color:#2e7d32}.card .v.bad{color:#c62828}
+li.bad{color:#c62828;font-weight:600}
 .figs{display:grid;grid-template-columns:1fr 1fr;gap:14px}.figs .wide{grid-column:1 / span 2}
 figure{background:#fff;border:1px solid #dde;border-radius:8px;margin:0;padding:10px 14px}
 figure img{max-width:100%;height:auto;display:block}figcaption{color:#555;font-size:.9em;margin-top:4px}

@@ -20,6 +20,7 @@ from toolkit.recipe import Recipe, StepSpec, load_recipe
 from toolkit.registry import Registry, default_registry
 from toolkit.scene import FIELD_TO_MANIFEST, load_scene
 from toolkit.stage import KIND_INPUTS, KIND_OPTIONAL, KIND_OUTPUT, KIND_OUTPUT_TYPE, Stage
+from toolkit.status import Assessment, assess
 from toolkit.threads import thread_budget
 from toolkit.types import Scene
 
@@ -39,6 +40,7 @@ class RunResult:
     results: dict[str, Any]
     timings: dict[str, float]
     warnings: list[str] = field(default_factory=list)
+    assessment: Assessment | None = None  # the truth-free self-assessment (toolkit.status)
 
 
 def _step_label(spec: StepSpec) -> str:
@@ -96,7 +98,7 @@ def build(recipe: Recipe, scene: str | Path | None = None, registry: Registry | 
             needed += options
     from toolkit.validate import check_scene_files
 
-    check_scene_files(scene_obj, needed)
+    check_scene_files(scene_obj, needed, [stage for _, stage in stages])
     return Plan(recipe=recipe, scene=scene_obj, stages=tuple(stages))
 
 
@@ -194,6 +196,9 @@ def run_recipe(recipe_path: str | Path, scene: str | Path | None = None, out: st
                recipe: Recipe | None = None, overlap: bool | None = None) -> RunResult:
     """Load, build and run a recipe, writing ``out`` (default ``out/<recipe name>``) atomically.
 
+    The run is assessed without truth (``toolkit.status``): an unreliable run still writes every
+    output and returns normally; ``RunResult.assessment`` says so (``crossview run`` exits 4).
+
     ``rerun=False`` disables the recipe's rerun log (tests, compare/batch use their own observers).
     ``overlap``: see ``execute`` (False: one step at a time, e.g. to profile each step alone).
     """
@@ -220,11 +225,13 @@ def run_recipe(recipe_path: str | Path, scene: str | Path | None = None, out: st
             rerun_obs.close()
             rerun_obs = None
         warnings = list(getattr(obs, "warnings", []))
-        write_outputs(tmp, plan, results, timings, warnings)
+        assessment = assess(results, plan.scene)
+        write_outputs(tmp, plan, results, timings, warnings, assessment)
         if out_dir.exists():
             shutil.rmtree(out_dir)
         tmp.rename(out_dir)
-        return RunResult(out_dir=out_dir, results=results, timings=timings, warnings=warnings)
+        return RunResult(out_dir=out_dir, results=results, timings=timings, warnings=warnings,
+                         assessment=assessment)
     except BaseException:
         if rerun_obs is not None:
             try:

@@ -7,6 +7,18 @@ from typing import Any
 from rich.console import Console
 from rich.table import Table
 
+# Truth-free figures, shown first: (label, "|"-joined keys of the assessment figures, format)
+STATUS_ROWS: tuple[tuple[str, str, str], ...] = (
+    ("registered share, segments / points", "registered_share|registered_point_share", "{:.0%} / {:.0%}"),
+    ("façade support (within {r:g} m of an outline)", "facade_support_share", "{:.0%}"),
+    ("façade distance to an outline, median", "facade_distance_median_m", "{:.2f} m"),
+    ("neighbour disagreement, median / share > {tol:g} m", "neighbour_gap_median_m|neighbour_disagree_share",
+     "{:.2f} m / {:.0%}"),
+    ("matching converged (iterations)", "bp_converged|bp_iterations", "{} ({})"),
+    ("BA reprojection RMS, before / after", "ba_rms_before_px|ba_rms_after_px", "{:.2f} / {:.2f} px"),
+    ("GPS residual of the cameras, median", "gps_residual_median_m", "{:.2f} m"),
+)
+
 # (label, path in metrics.json, unit)
 SUMMARY_ROWS: tuple[tuple[str, str, str], ...] = (
     ("per-point error, horizontal median", "truth.horizontal.median_m", "m"),
@@ -38,6 +50,9 @@ def print_summary(res, console: Console | None = None) -> None:
     table = Table(title=f"crossview — {res.out_dir}", show_header=True, header_style="bold")
     table.add_column("measure")
     table.add_column("value", justify="right")
+    assessment = getattr(res, "assessment", None)
+    if assessment is not None:
+        _status_rows(table, assessment)
     for label, path, unit in SUMMARY_ROWS:
         v = lookup(values, path)
         if isinstance(v, (int, float)):
@@ -45,6 +60,9 @@ def print_summary(res, console: Console | None = None) -> None:
     for step, seconds in res.timings.items():
         table.add_row(f"time: {step}", f"{seconds:.2f} s")
     console.print(table)
+    for reason in assessment.reasons if assessment is not None else ():
+        colour = "red" if assessment.status != "ok" else "yellow"
+        console.print(f"[{colour}]{'reason' if assessment.status != 'ok' else 'concern'}[/] {reason}")
     if res.warnings:
         for w in res.warnings:
             console.print(f"[yellow]warning[/] {w}")
@@ -55,3 +73,19 @@ def print_summary(res, console: Console | None = None) -> None:
                 console.print(f"{name:14s} {p}")
         if (res.out_dir / "recording.rrd").exists():
             console.print(f"open the recording with: rerun {res.out_dir / 'recording.rrd'}")
+
+
+def _status_rows(table: Table, assessment) -> None:
+    """Status, confidence and the truth-free figures the run has (toolkit.status)."""
+    f = assessment.figures
+    style = "bold green" if assessment.status == "ok" else "bold red"
+    table.add_row("status (no truth needed)", f"[{style}]{assessment.status}[/]")
+    table.add_row("confidence", f"{assessment.confidence:.2f}")
+    for label, keys, fmt in STATUS_ROWS:
+        values = [f.get(k) for k in keys.split("|")]
+        if any(v is None for v in values):
+            continue
+        values = ["yes" if v is True else "no" if v is False else v for v in values]
+        text = label.format(r=f.get("facade_radius_m", 0), tol=f.get("neighbour_tol_m", 0))
+        table.add_row(text, fmt.format(*values))
+    table.add_section()

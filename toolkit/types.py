@@ -1,4 +1,4 @@
-"""Typed, frozen containers for every arrow of the data flow (see DESIGN.md).
+"""Typed, frozen containers for every arrow of the data flow (see docs/ARCHITECTURE.md).
 
 Conventions
 - Scene CRS coordinates are float64 and may be large (UTM easting/northing); stages subtract a
@@ -258,11 +258,16 @@ class DataCosts:
     cost: (E,L) float64 in [0,1]; pruned candidates are +inf; cost[:, null] = 1.
     theta_rad: (E,L-1) rotation of the fitted 2D rigid transform (levelled street → scene CRS).
     t: (E,L-1,2) its translation: x_scene = R(theta) @ x_street + t.
+    prior: where the candidates were pruned from: "gps", "route_placement" or None (every pair searched);
+    prior_figures: truth-free figures of that prior (route placement: window scores, disagreement of
+    neighbouring windows), for the run's self-assessment.
     """
 
     cost: Array
     theta_rad: Array
     t: Array
+    prior: str | None = None
+    prior_figures: Mapping[str, Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -314,6 +319,8 @@ class Registration:
     point_segment: (N,) int carrier segment used (-1: none).
     camera_spread_m: (C,) spread of the segment transforms blended at each camera centre (the
     weighted RMS distance of their placements from the blended one, metres), or None (unknown).
+    warp: the point warp that moved ``points`` (``toolkit.warp.model.PointWarp``, with the points'
+    carriers), stored as ``warp.npz`` for ``crossview apply``; None when the stage gives none.
     """
 
     points: Array
@@ -322,6 +329,7 @@ class Registration:
     t: Array
     point_segment: Array
     camera_spread_m: Array | None = None
+    warp: Any = None
 
 
 @dataclass(frozen=True)
@@ -340,7 +348,7 @@ class AdjustedCameras:
 
 @dataclass(frozen=True)
 class Metrics:
-    """Evaluation results: a JSON-able nested mapping (schema in README)."""
+    """Evaluation results: a JSON-able nested mapping (schema in plugins/evaluate_chamfer.py)."""
 
     values: Mapping[str, Any]
     per_point_error_m: Array | None = None  # (N,) 3D error per street point when truth exists

@@ -34,15 +34,16 @@ class RoutePriorConfig(BaseModel):
     window_m: float = Field(250.0, gt=20, description="route length of each placement window (metres)")
     cell_m: float = Field(4.0, gt=0, description="cell size of the correlation maps (metres)")
     tolerance_m: float = Field(6.0, gt=0, description="a façade point farther than this from an outline scores 0")
-    rotation_step_deg: float = Field(3.0, gt=0, le=30, description="rotation step of the placement search")
-    candidates_per_window: int = Field(20, ge=1, description="distinct coarse placements re-scored on the fine map")
-    placements_per_window: int = Field(8, ge=1, description="distinct placements kept per window for the chain")
-    fine_cell_m: float = Field(1.0, gt=0, description="cell size of the fine map the coarse placements are re-scored on")
+    rotation_step_deg: float = Field(3.0, gt=0, le=30, description="rotation step of the placement search (degrees)")
+    candidates_per_window: int = Field(20, ge=1, description="distinct coarse placements re-scored on the fine map (count)")
+    placements_per_window: int = Field(8, ge=1, description="distinct placements kept per window for the chain (count)")
+    fine_cell_m: float = Field(1.0, gt=0, description="cell size of the fine map the coarse placements are re-scored on (m)")
     fine_tolerance_m: float = Field(3.0, gt=0, description="tolerance of the fine map (metres)")
-    agree_m: float = Field(15.0, gt=0, description="neighbouring windows disagreeing by this much pay the full link cost")
-    link_cost: float = Field(0.5, ge=0, description="cost of a full disagreement between neighbouring windows")
-    sigma_m: float = Field(3.0, gt=0, description="accuracy the data term assumes for the placed segment centres")
-    min_score: float = Field(0.35, ge=0, le=1, description="a chain whose median window score is below this is not used")
+    agree_m: float = Field(15.0, gt=0, description="neighbouring windows disagreeing by this much pay the full link cost (m)")
+    link_cost: float = Field(0.5, ge=0, description="cost of a full disagreement between neighbouring "
+                                                    "windows (unitless, as a window score)")
+    sigma_m: float = Field(3.0, gt=0, description="accuracy the data term assumes for the placed segment centres (m)")
+    min_score: float = Field(0.35, ge=0, le=1, description="a chain whose median window score (0-1) is below this is not used")
 
 
 @dataclass(frozen=True)
@@ -82,6 +83,14 @@ class RoutePlacement:
     link_m: np.ndarray
     top_share: float
     reason: str = ""
+
+    def figures(self) -> dict:
+        """Truth-free figures for the run's self-assessment (JSON-able, rounded)."""
+        return {"used": self.prior is not None, "reason": self.reason or None, "windows": len(self.windows),
+                "score_median": round(float(np.median(self.window_scores)), 4) if len(self.window_scores) else None,
+                "score_min": round(float(self.window_scores.min()), 4) if len(self.window_scores) else None,
+                "link_max_m": round(float(self.link_m.max()), 3) if len(self.link_m) else None,
+                "best_alone_share": round(self.top_share, 4)}
 
     def describe(self) -> str:
         scores = " ".join(f"{v:.2f}" for v in self.window_scores)
