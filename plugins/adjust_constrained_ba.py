@@ -47,20 +47,14 @@ class ConstrainedBA(Stage):
         max_iterations: int = Field(100, ge=1, description="Solver iteration cap (scipy: function evaluations).")
         function_tolerance: float = Field(1e-6, gt=0, description="Relative cost decrease that stops the solver (pycolmap's default of 0 would run to the cap).")
         threads: int = Field(
-            1, ge=-1, description="Ceres threads (-1 = all cores). More than one sums the normal equations in "
-                                  "a varying order, so the adjusted poses then differ run to run in the last "
-                                  "digits (measured on campus: rotations 7e-9 apart between two runs).")
+            1, ge=-1, description="Ceres threads (-1 = all cores; more than one is not bit-reproducible)")
         max_reproj_error_px: float | None = Field(
-            4.0, gt=0, description="After a first adjustment, observations reprojecting farther than this (or behind "
-                                   "their camera) are removed and the adjustment is repeated, as COLMAP filters "
-                                   "(pixels; None keeps every observation).")
+            4.0, gt=0, description="Drop observations reprojecting farther than this after a "
+                                   "first solve, then re-solve (px; None: keep all)")
 
         prior_spread: bool = Field(
-            True, description="Each camera's position prior has variance 1/λ plus the square of the warp's spread "
-                              "at it (m²: how far apart the segment transforms blended at the camera put it, "
-                              "Registration.camera_spread_m), so a camera the warp places uncertainly is held "
-                              "more loosely and follows its well-placed neighbours through the images. Off: the "
-                              "paper's single λ for every camera.")
+            True, description="Camera position prior variance 1/λ + (warp spread at the "
+                              "camera)² (m²) instead of the paper's 1/λ alone")
 
     @classmethod
     def scene_needs(cls, params) -> tuple[str, ...]:

@@ -92,12 +92,12 @@ class Chamfer(Stage):
     class Params(StageParams):
         cutoff_m: float = Field(10.0, gt=0, description="ignore mutually nearest pairs farther than this (paper: 10 m)")
         reference: str = Field(
-            "auto", description="reference cloud: 'truth_lidar', 'overview_cloud', a file path, or 'auto' "
-                                "(truth_lidar when the scene has it, else overview_cloud, else none)")
+            "auto", description="reference cloud: 'truth_lidar', 'overview_cloud', a file "
+                                "path, or 'auto' (the first of those the scene has)")
         max_points: int = Field(1_000_000, ge=0, description="subsample each cloud to at most this many "
                                 "points (deterministic; 0 = all) for the Chamfer metric")
         seed: int = Field(0, description="seed of the deterministic subsampling")
-        hist_bin_m: float = Field(0.1, gt=0, description="bin width of the distance histograms")
+        hist_bin_m: float = Field(0.1, gt=0, description="bin width of the distance histograms (m)")
 
     @classmethod
     def scene_needs(cls, params: StageParams) -> tuple[str, ...]:

@@ -29,17 +29,10 @@ class KnnGraph(Stage):
     class Params(StageParams):
         k: int = Field(4, ge=1, le=64, description="Neighbours per segment (paper: K = 4), both views.")
         overview_k: int | None = Field(
-            10, ge=1, le=64, description="K for the over-view graph (None: k). Paper: 4 for both; with street "
-                                         "segments at façade level, K = 4 over-view edges miss many true pairs "
-                                         "(campus scene: 77 % of street segments reachable at 4, 94 % at 8). "
-                                         "Held-out campus seeds 5-7 × 3 sources, loopy BP: recall min / mean "
-                                         "0.855 / 0.924 at 8, 0.873 / 0.930 at 10 (same at 12 and 16), "
-                                         "precision min 0.958-0.959 at all four.")
+            10, ge=1, le=64, description="K-nearest neighbours per segment in the over-view graph (count; None: k)")
         same_segment_labels: bool = Field(
-            True, description="Also label a street edge with one over-view segment for both ends (a self-loop "
-                              "(p, p) of the over-view graph, so labels 2f and 2f+1 coincide): two façades of "
-                              "one building are otherwise forced to the null label. The paper has no such "
-                              "label.")
+            True, description="Also allow labelling a street edge with one over-view "
+                              "segment for both ends (not in the paper)")
         max_edge_m: float | None = Field(
             None, gt=0, description="Drop K-NN edges longer than this (metres; None keeps all).")
 

@@ -20,7 +20,7 @@ class ICM(Stage):
     name = "icm"
 
     class Params(SmoothnessParams):
-        max_iters: int = Field(50, ge=1, description="maximum number of sweeps over the nodes")
+        max_iters: int = Field(50, ge=1, description="maximum number of sweeps over the nodes (count)")
 
     def __call__(self, graphs: ConjugateGraphs, costs: DataCosts, obs: Any) -> Matches:
         p = self.params

@@ -1,4 +1,4 @@
-"""match.loopy_bp — the paper's inference: min-sum loopy BP on the conjugate graph (METHOD.md §6)."""
+"""match.loopy_bp — the paper's inference: min-sum loopy BP on the conjugate graph (Eq. 3–4)."""
 
 from __future__ import annotations
 
@@ -39,28 +39,23 @@ class LoopyBP(Stage):
     class Params(SmoothnessParams):
         max_iters: int = Field(100, ge=1, description="maximum number of message-passing iterations")
         damping: float = Field(0.5, ge=0.0, lt=1.0,
-                               description="message damping: new = damping*old + (1-damping)*update; 0 is the "
-                                           "paper's plain update, which often oscillates with period 2")
-        patience: int = Field(2, ge=1, description="consecutive iterations with unchanged energy that count as "
-                                                   "converged (1: the paper's criterion taken literally; 2 "
-                                                   "tolerates a damped labelling pausing for one iteration)")
+                               description="message damping: new = damping·old + (1 − "
+                                           "damping)·update (0-1; 0: the paper's plain update)")
+        patience: int = Field(2, ge=1, description="consecutive iterations with unchanged energy that count "
+                                                   "as converged (count; 1: the paper's criterion)")
         energy_tol: float = Field(1e-9, ge=0.0, description="relative energy change regarded as no change")
         message_tol: float | None = Field(
-            None, gt=0.0, description="also require every message entry to move less than this per iteration "
-                                      "(None: stop on the energy alone, the paper's criterion; with damping the "
-                                      "messages of a settled labelling can keep creeping for tens of "
-                                      "iterations, campus scene: 6 vs 60+ iterations for the same energy)")
+            None, gt=0.0, description="also require every message entry to move less than this "
+                                      "per iteration (cost units; None: energy alone)")
         stall_iters: int | None = Field(
-            30, ge=1, description="give up (not converged) when the best energy has not improved for this "
-                                  "many iterations: loopy BP can oscillate forever (None: run to max_iters)")
+            30, ge=1, description="give up (not converged) after this many iterations without "
+                                  "a better energy (count; None: run to max_iters)")
 
         polish: bool = Field(
-            True, description="finish with ICM started from the lowest-energy BP labelling and from the final "
-                              "messages decoded sequentially, as match.trws does (never raises the energy; not "
-                              "in the paper, whose BP ends at the belief argmin; False: the paper's output)")
+            True, description="finish with ICM from the best BP labelling and the decoded "
+                              "messages (never raises the energy; False: the paper)")
         float32_messages: bool = Field(
-            True, description="keep messages in float32 (half the memory traffic per sweep; energies and "
-                              "the returned labelling's energy are computed in float64)")
+            True, description="keep messages in float32 (energies are still computed in float64)")
 
     def __call__(self, graphs: ConjugateGraphs, costs: DataCosts, obs: Any) -> Matches:
         p = self.params

@@ -26,9 +26,10 @@ class PgmpyMplp(Stage):
     name = "pgmpy"
 
     class Params(SmoothnessParams):
-        max_nodes: int = Field(200, ge=1, description="refuse conjugate graphs with more nodes than this")
+        max_nodes: int = Field(200, ge=1, description="refuse conjugate graphs with more nodes than this (count)")
         max_table_entries: int = Field(2_000_000, ge=1,
-                                       description="refuse when the pairwise tables hold more entries than this")
+                                       description="refuse when the pairwise tables hold "
+                                                   "more entries than this (count)")
         max_iters: int = Field(1000, ge=1, description="Mplp message-passing iterations (init_iter)")
         tighten_triplets: bool = Field(False, description="tighten the LP with triangle clusters (L^3 tables)")
 

@@ -29,12 +29,9 @@ class TRWS(Stage):
         energy_tol: float = Field(1e-9, ge=0.0, description="relative energy change regarded as no change; "
                                                             "also the relative gap regarded as closed")
         bound_tol: float = Field(1e-5, ge=0.0, description="relative bound gain per pass regarded as stalled")
-        polish: bool = Field(True, description="finish with ICM from the best labelling (never raises the energy; "
-                                               "the decoded TRW-S labelling can miss single-node improvements "
-                                               "when the relaxation is not tight)")
-        segment_moves: bool = Field(True, description="with polish, also re-match one street segment at a time "
-                                                      "(all its incident edges change together; never raises the "
-                                                      "energy)")
+        polish: bool = Field(True, description="finish with ICM from the best labelling (never raises the energy)")
+        segment_moves: bool = Field(True, description="with polish, also re-match one street "
+                                                      "segment (all its edges) at a time")
 
     def __call__(self, graphs: ConjugateGraphs, costs: DataCosts, obs: Any) -> Matches:
         p = self.params

@@ -1,4 +1,4 @@
-"""overview.dsm_tophat — building segments from a DSM and a multispectral ortho (METHOD.md §1).
+"""overview.dsm_tophat — building segments from a DSM and a multispectral ortho (Ling & Qin 2022, over-view segments).
 
 White top-hat of the DSM → height threshold → minus vegetation (NDVI) and shadow (shadow
 index) → half-height edges → thin-structure and small-component cleanup → connected components
@@ -23,7 +23,7 @@ from pydantic import Field
 
 from toolkit.errors import StageError
 from toolkit.observe import DebugImage
-from toolkit.overview.inputs import load_dsm, load_ortho
+from toolkit.overview.inputs import check_ortho_bands, load_dsm, load_ortho
 from toolkit.overview.mask import clean_mask, mask_to_labels
 from toolkit.overview.segments import build_segments, colour_segments, relabel
 from toolkit.overview.tophat import (
@@ -47,41 +47,42 @@ class DsmTophat(Stage):
 
     class Params(StageParams):
         tophat_radius_m: float = Field(40.0, gt=0, description=(
-            "half-size of the flat structuring element of the white top-hat; it must not fit "
-            "inside any building (larger than the largest building's inscribed half-width)"))
+            "half-size of the top-hat's flat structuring element; must "
+            "exceed every building's inscribed half-width (m)"))
         footprint: Literal["square", "disk"] = Field("square", description=(
-            "structuring element: square (separable, time independent of the radius) or disk "
-            "(skimage decomposed disk, time grows with the radius)"))
+            "structuring element: square (separable, time independent of the radius) or disk (time grows with it)"))
         height_min_m: float = Field(2.5, gt=0, description="minimum top-hat height of a building pixel")
         edge_fraction: float = Field(0.5, ge=0, lt=1, description=(
-            "a building pixel also needs this fraction of the highest top-hat within edge_radius_m: "
-            "puts edges at half height under the DSM's blur and cuts narrow gaps (0 disables)"))
-        edge_radius_m: float = Field(2.0, gt=0, description="neighbourhood of that local maximum")
+            "a building pixel needs this share of the highest top-hat within edge_radius_m (0-1; 0 disables)"))
+        edge_radius_m: float = Field(2.0, gt=0, description="neighbourhood of that local maximum (m)")
         step_fraction: float = Field(1.0, ge=0, description=(
-            "pixels cut by edge_fraction are kept when at least this fraction of the lowest roof "
-            "nearby: height steps inside a building or terrace stay joined, gaps stay cut (0 disables)"))
+            "keep pixels cut by edge_fraction with at least this share "
+            "of the lowest roof nearby (unitless; 0 disables)"))
         wall_slope_min: float = Field(0.8, ge=0, description=(
-            "segments whose outline has a median DSM slope below this (m/m) are terrain (dunes, "
-            "embankments, mounds narrower than the top-hat), not buildings with walls (0 disables)"))
+            "segments whose outline's median DSM slope is below this are terrain, not buildings (m/m; 0 disables)"))
         ndvi_max: float = Field(0.3, description="pixels with NDVI above this are vegetation and removed")
         shadow_index_max: float | None = Field(None, description=(
             "pixels darker than this shadow index (0 bright .. 1 black) are removed; None keeps them"))
         use_ortho: bool = Field(True, description="use the ortho for NDVI/shadow (False: DSM only)")
         bands: tuple[str, ...] | None = Field(None, description=(
-            "ortho band roles in file order (e.g. [red, green, blue, nir]); needed when the band "
-            "descriptions do not name red and nir, and overrides them when given"))
+            "ortho band roles in file order, e.g. [red, green, blue, nir]; "
+            "overrides the band descriptions (None: read them)"))
         thin_radius_m: float = Field(1.0, ge=0, description=(
-            "radius of the binary opening that removes walls, fences and branches"))
-        min_area_m2: float = Field(20.0, ge=0, description="components smaller than this are removed")
-        max_hole_m2: float = Field(50.0, ge=0, description="enclosed holes smaller than this are filled")
-        min_diameter_m: float = Field(5.0, ge=0, description="segments under this maximum Feret diameter are dropped")
+            "radius of the binary opening that removes walls, fences and branches (m)"))
+        min_area_m2: float = Field(20.0, ge=0, description="components smaller than this are removed (m²)")
+        max_hole_m2: float = Field(50.0, ge=0, description="enclosed holes smaller than this are filled (m²)")
+        min_diameter_m: float = Field(5.0, ge=0, description="segments under this maximum Feret diameter are dropped (m)")
         connectivity: Literal[4, 8] = Field(4, description="pixel connectivity of the components")
-        ring_inner_m: float = Field(1.0, ge=0, description="ground ring starts this far from any building")
-        ring_outer_m: float = Field(6.0, gt=0, description="ground ring ends this far from the segment")
+        ring_inner_m: float = Field(1.0, ge=0, description="ground ring starts this far from any building (m)")
+        ring_outer_m: float = Field(6.0, gt=0, description="ground ring ends this far from the segment (m)")
 
     @classmethod
     def scene_needs(cls, params: StageParams) -> tuple[str, ...]:
         return ("dsm", "ortho") if getattr(params, "use_ortho", True) else ("dsm",)
+
+    def check_scene(self, scene: Scene) -> None:
+        if self.params.use_ortho:
+            check_ortho_bands(scene, self.key(), self.params.bands, ("red", "nir"))
 
     def __call__(self, scene: Scene, obs: Any) -> OverviewSegments:
         p = self.params

@@ -1,4 +1,4 @@
-"""overview.label_map — building segments from a GeoTIFF class map (METHOD.md §1).
+"""overview.label_map — building segments from a GeoTIFF class map (Ling & Qin 2022, over-view segments).
 
 Pixels equal to ``building_class`` (no-data pixels excluded) → thin-structure and
 small-component cleanup → connected components → segments of at least ``min_diameter_m``.
@@ -30,16 +30,16 @@ class LabelMap(Stage):
 
     class Params(StageParams):
         building_class: int = Field(1, description="class value of building pixels")
-        band: int = Field(1, ge=1, description="band of the class map holding the classes (1-based)")
+        band: int = Field(1, ge=1, description="band of the class map holding the classes (1-based index)")
         thin_radius_m: float = Field(1.0, ge=0, description=(
-            "radius of the binary opening that removes thin misclassified structures"))
-        min_area_m2: float = Field(20.0, ge=0, description="components smaller than this are removed")
-        max_hole_m2: float = Field(50.0, ge=0, description="enclosed holes smaller than this are filled")
-        min_diameter_m: float = Field(5.0, ge=0, description="segments under this maximum Feret diameter are dropped")
+            "radius of the binary opening that removes thin misclassified structures (m)"))
+        min_area_m2: float = Field(20.0, ge=0, description="components smaller than this are removed (m²)")
+        max_hole_m2: float = Field(50.0, ge=0, description="enclosed holes smaller than this are filled (m²)")
+        min_diameter_m: float = Field(5.0, ge=0, description="segments under this maximum Feret diameter are dropped (m)")
         connectivity: Literal[4, 8] = Field(4, description="pixel connectivity of the components")
         ground_from_dsm: bool = Field(True, description="terrain height/normal around segments from the DSM when present")
-        ring_inner_m: float = Field(1.0, ge=0, description="ground ring starts this far from any building")
-        ring_outer_m: float = Field(6.0, gt=0, description="ground ring ends this far from the segment")
+        ring_inner_m: float = Field(1.0, ge=0, description="ground ring starts this far from any building (m)")
+        ring_outer_m: float = Field(6.0, gt=0, description="ground ring ends this far from the segment (m)")
 
     @classmethod
     def scene_needs(cls, params: StageParams) -> tuple[str, ...]:

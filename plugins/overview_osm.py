@@ -1,4 +1,4 @@
-"""overview.osm — building segments from footprints: GeoJSON, OSM XML or OSM PBF (METHOD.md §1).
+"""overview.osm — building segments from footprints: GeoJSON, OSM XML or OSM PBF (Ling & Qin 2022, over-view segments).
 
 Polygons are projected to the scene CRS and rasterised (pixel-centre rule) on the scene grid —
 the DSM's, else the ortho's or the label map's — or, when the scene has no raster, on a grid of
@@ -34,21 +34,21 @@ class OsmFootprints(Stage):
 
     class Params(StageParams):
         source: Literal["auto", "geojson", "osm"] = Field("auto", description=(
-            "which scene file to read: overview.footprints (geojson), overview.osm (.osm / .osm.pbf), "
-            "or auto (footprints if named, else osm)"))
+            "footprint file: geojson (overview.footprints), osm "
+            "(.osm/.osm.pbf) or auto (footprints if named, else osm)"))
         gsd_m: float = Field(0.5, gt=0, description="pixel size of the grid used when the scene has no raster")
-        margin_m: float = Field(20.0, ge=0, description="margin around the footprints of that grid")
-        min_diameter_m: float = Field(5.0, ge=0, description="buildings under this maximum Feret diameter are dropped")
+        margin_m: float = Field(20.0, ge=0, description="margin around the footprints of that grid (m)")
+        min_diameter_m: float = Field(5.0, ge=0, description="buildings under this maximum Feret diameter are dropped (m)")
         merge_touching: bool = Field(False, description="merge buildings that touch (terraces, blocks) into one segment")
         touch_tolerance_m: float = Field(0.2, ge=0, description="gap up to which buildings count as touching")
         all_touched: bool = Field(False, description="burn every pixel a polygon touches (default: pixel centres inside)")
         align_to_dsm: bool = Field(False, description=(
-            "shift each footprint (whole pixels, within align_search_m) onto the raised area of the "
-            "scene DSM, for outlines offset from the imagery; needs overview.dsm"))
-        align_search_m: float = Field(3.0, ge=0, description="largest shift tried by align_to_dsm")
+            "shift each footprint by whole pixels, up to align_search_m, onto "
+            "the raised area of the scene DSM (needs overview.dsm)"))
+        align_search_m: float = Field(3.0, ge=0, description="largest shift tried by align_to_dsm (m)")
         ground_from_dsm: bool = Field(True, description="terrain height/normal around segments from the DSM when present")
-        ring_inner_m: float = Field(1.0, ge=0, description="ground ring starts this far from any building")
-        ring_outer_m: float = Field(6.0, gt=0, description="ground ring ends this far from the segment")
+        ring_inner_m: float = Field(1.0, ge=0, description="ground ring starts this far from any building (m)")
+        ring_outer_m: float = Field(6.0, gt=0, description="ground ring ends this far from the segment (m)")
 
     @classmethod
     def scene_needs(cls, params: StageParams) -> tuple[str, ...]:

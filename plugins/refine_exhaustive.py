@@ -75,59 +75,40 @@ class Exhaustive(Stage):
         max_tilt_deg: float = Field(5.0, ge=0, description="A tilt correction larger than this is distrusted and skipped (degrees).")
         min_inlier_ratio: float = Field(0.2, ge=0, le=1, description="A segment whose footprint has a smaller inlier share after the search is rejected.")
         check_consistency: bool = Field(True, description="Reject segments whose transform disagrees with their neighbours'.")
-        neighbours_k: int = Field(4, ge=1, description="Neighbours compared in the consistency check (and for filling missing heights).")
+        neighbours_k: int = Field(4, ge=1, description="Neighbours compared in the consistency check and "
+                                                       "for filling missing heights (count).")
         consistency_tol_m: float = Field(3.0, gt=0, description="Allowed gap between neighbouring transforms at their segment centres (metres) ...")
         consistency_tol_ratio: float = Field(0.05, ge=0, description="... plus this fraction of the distance between the segments (drift grows with distance).")
         route_aware: bool = Field(
-            True, description="Neighbours are searched by position AND position along the route (from the COLMAP "
-                              "model: which cameras observe each segment), so that the segments of another pass of "
-                              "the route, next to them in the drifted street frame, are not taken for neighbours.")
+            True, description="Find neighbours by position and by position along the route (from "
+                              "COLMAP), so another pass's segments are not neighbours")
         route_window_m: float = Field(
-            150.0, ge=0, description="Route-aware only: a segment disagreeing with more than half of the segments "
-                                     "captured within this distance along the route is rejected (outvotes runs of "
-                                     "wrong matches; 0 disables).")
+            150.0, ge=0, description="Reject a segment disagreeing with over half the segments within "
+                                     "this route distance (m; route-aware only; 0: off)")
         reject_groups: bool = Field(
-            False, description="Also reject groups of mutually consistent segments that disagree with the best-supported "
-                               "group (wrong matches in a cluster). Off by default: after a loop the street frame puts "
-                               "segments of the other pass next to each other, legitimately disagreeing (campus seed 0, "
-                               "OSM: 3D p95 1.2 m → 11 m with it on).")
-        propagate: bool = Field(True, description="Also register segments without a (surviving) match, seeded by their registered neighbours' transforms and searched against every over-view outline around them.")
+            False, description="Also reject groups of mutually consistent segments "
+                               "that disagree with the best-supported group")
+        propagate: bool = Field(True, description="Also register unmatched segments, seeded by registered neighbours' transforms, against every outline near them")
         propagated_confidence: float = Field(0.5, ge=0, le=1, description="Confidence factor of a segment registered by propagation (times its inlier share).")
-        neighbour_passes: int = Field(1, ge=0, le=5, description="Passes searching every registered segment again, seeded by its neighbours' blended transforms (fixes the position along straight walls; 0: the paper's single pass).")
-        prior_k: int = Field(8, ge=1, description="Neighbours blended into that seed (weights 1/log d).")
+        neighbour_passes: int = Field(1, ge=0, le=5, description="Extra passes re-searching every registered segment from its neighbours' blended transforms (count; 0: the paper's one)")
+        prior_k: int = Field(8, ge=1, description="Neighbours blended into that seed (count; weights 1/log d).")
         joint_window_m: float = Field(
-            50.0, ge=0, description="Finally, each segment's 2D transform is re-estimated by registering together the "
-                                    "footprints of every segment captured within this distance along the route "
-                                    "(metres; route-aware only; 0: off, the paper's per-segment fit). Averages out "
-                                    "per-building outline errors (toolkit.refine.joint); short, because the true "
-                                    "transform drifts along the route (0.5 m per 50-100 m on campus). Held-out campus "
-                                    "seeds 5-7, DSM and label map (6 runs), 50/80/120 m: mean horizontal median "
-                                    "0.315/0.330/0.355 m, 3D p95 1.43/1.54/1.46 m, 3D mean 0.60/0.63/0.64 m. "
-                                    "recipes/osm.yaml takes 200 m with the tricube kernel (OSM outlines err more).")
+            50.0, ge=0, description="Re-fit each 2D transform jointly with the segments within "
+                                    "this route distance (m; route-aware only; 0: off)")
         joint_rotation_deg: float = Field(2.0, ge=0, description="Joint pass: rotation searched either side of the segment's own (degrees).")
         joint_shift_m: float = Field(2.0, ge=0, description="Joint pass: offsets searched either side of the segment's own (metres).")
         joint_segment_points: int = Field(
-            0, ge=0, description="Joint pass: at most this many footprint points (0.5 m cells) per segment in the joint "
-                                 "footprint, so that a few long walls do not outweigh the other buildings' independent "
-                                 "outline errors (0: all).")
+            0, ge=0, description="Joint pass: cap on footprint points (0.5 m cells) per segment (count; 0: all)")
         joint_outline_points: int = Field(
-            0, ge=0, description="Joint pass: at most this many footprint points (0.5 m cells) per over-view outline "
-                                 "(the outline nearest to each point under its segment's own transform), so that "
-                                 "each building's own outline error counts about once however much of its wall "
-                                 "was seen (0: all).")
+            0, ge=0, description="Joint pass: cap on footprint points (0.5 m cells) "
+                                 "per over-view outline (count; 0: all)")
         joint_kernel: Literal["box", "tricube"] = Field(
-            "box", description="Joint pass: 'box' takes every segment within the window in full; 'tricube' keeps a "
-                               "share (1 − (Δs/window)³)³ of each segment's points by its route distance Δs, so that "
-                               "a longer window averages more buildings while far ones, drifted, weigh less.")
+            "box", description="Joint pass weighting by route distance Δs: 'box' (all "
+                               "equal) or 'tricube' ((1 − (Δs/window)³)³)")
 
         rotation_window_m: float = Field(
-            0.0, ge=0, description="After the joint pass (route-aware only), each segment's 2D rotation is replaced "
-                                   "by the mean rotation of the segments captured within this distance along the "
-                                   "route (tricube weights on "
-                                   "route distance times √(footprint points)), turned about its own footprint centre "
-                                   "(metres; 0: off). A short or compact façade leaves its rotation weakly fixed, and "
-                                   "the ground it carries tens of metres away moves by that angle times the lever "
-                                   "(toolkit.refine.rotation). recipes/label_map.yaml takes 150 m.")
+            0.0, ge=0, description="Set each rotation to the weighted mean rotation of segments "
+                                   "within this route distance (m; route-aware only; 0: off)")
 
     @classmethod
     def scene_needs(cls, params) -> tuple[str, ...]:

@@ -29,17 +29,17 @@ class GlobalFpfh(Stage):
     name = "global_fpfh"
 
     class Params(StageParams):
-        voxel_m: float = Field(1.0, gt=0, description="voxel size of the downsampling of both clouds")
-        normal_radius_m: float = Field(2.0, gt=0, description="radius of the normal estimation")
-        feature_radius_m: float = Field(5.0, gt=0, description="radius of the FPFH features")
-        max_keypoints: int = Field(5000, ge=3, description="street voxels whose features are matched "
-                                   "(deterministic subsample; bounds the feature-matching cost)")
-        ransac_distance_m: float = Field(1.5, gt=0, description="RANSAC inlier distance")
+        voxel_m: float = Field(1.0, gt=0, description="voxel size of the downsampling of both clouds (m)")
+        normal_radius_m: float = Field(2.0, gt=0, description="radius of the normal estimation (m)")
+        feature_radius_m: float = Field(5.0, gt=0, description="radius of the FPFH features (m)")
+        max_keypoints: int = Field(5000, ge=3, description="street voxels whose features are matched (count; a "
+                                                           "deterministic subsample bounding the matching cost)")
+        ransac_distance_m: float = Field(1.5, gt=0, description="RANSAC inlier distance (m)")
         ransac_iterations: int = Field(100_000, ge=1, description="RANSAC iteration cap")
         ransac_confidence: float = Field(0.999, gt=0, lt=1, description="RANSAC stopping confidence")
-        ransac_restarts: int = Field(3, ge=1, description="independent RANSAC runs (seeds seed, seed+1, …); "
-                                     "the one with the best ICP fitness is kept")
-        icp_distance_m: float = Field(2.0, gt=0, description="ICP correspondence distance")
+        ransac_restarts: int = Field(3, ge=1, description="independent RANSAC runs, seeds seed, seed+1, … (count); "
+                                                          "the one with the best ICP fitness is kept")
+        icp_distance_m: float = Field(2.0, gt=0, description="ICP correspondence distance (m)")
         icp_iterations: int = Field(50, ge=0, description="ICP iteration cap (0: RANSAC only)")
         use_levelling: bool = Field(False, description="start from the street stage's levelled frame (gives "
                                     "RANSAC the up direction); off = the plain Open3D pipeline")

@@ -44,10 +44,10 @@ class IcpRefine(Stage):
         min_fitness: float = Field(0.3, ge=0, le=1, description="ICP results matching a smaller share of source points are discarded (seed kept).")
         max_correction_m: float = Field(10.0, gt=0, description="ICP results moving the segment centre farther than this are discarded (metres).")
         max_correction_deg: float = Field(10.0, gt=0, description="ICP results rotating more than this are discarded (degrees).")
-        normal_max_angle_deg: float = Field(15.0, gt=0, lt=90, description="Ground normals within this angle of vertical define the street ground normal.")
+        normal_max_angle_deg: float = Field(15.0, gt=0, lt=90, description="Ground normals within this angle of vertical define the street ground normal (degrees).")
         min_ground_points: int = Field(30, ge=3, description="Fewer ground points than this: no tilt, height from the neighbours.")
         check_consistency: bool = Field(True, description="Reject segments whose transform disagrees with their neighbours'.")
-        neighbours_k: int = Field(4, ge=1, description="Neighbours compared in the consistency check.")
+        neighbours_k: int = Field(4, ge=1, description="Neighbours compared in the consistency check (count).")
         consistency_tol_m: float = Field(3.0, gt=0, description="Allowed gap between neighbouring transforms at their centres (metres) ...")
         consistency_tol_ratio: float = Field(0.05, ge=0, description="... plus this fraction of the distance between the segments.")
 

@@ -1,4 +1,4 @@
-"""street.region_growing: building façade segments of the street cloud (METHOD.md §2).
+"""street.region_growing: building façade segments of the street cloud (Ling & Qin 2022, street-view segments).
 
 Steps (helpers in ``toolkit/street``):
 1. Local origin (median), Morton order; by default a voxel reduction (``voxel_m``, 0.3 m), the
@@ -61,55 +61,49 @@ class RegionGrowingParams(StageParams):
     multiscale_knn: list[int] | None = Field(
         None, description="optional several k (e.g. [10, 20, 30]): façade when ≥ multiscale_min_votes scales agree")
     multiscale_min_votes: int = Field(2, ge=1, description="scales that must call a point façade")
-    facade_angle_deg: float = Field(75.0, gt=0, lt=90, description="façade: normal more than this from vertical")
+    facade_angle_deg: float = Field(75.0, gt=0, lt=90, description="façade: normal more than this from vertical (degrees)")
     facade_neighbour_fraction: float = Field(
         0.75, ge=0, lt=1, description="façade: more than this share of the k neighbours pass the angle test")
-    ground_angle_deg: float = Field(15.0, gt=0, lt=90, description="ground: normal within this of vertical")
+    ground_angle_deg: float = Field(15.0, gt=0, lt=90, description="ground: normal within this of vertical (degrees)")
     graph_knn: int = Field(
         10, ge=1, description="region growing links each façade point to at most its nearest graph_knn (≤ knn)")
-    smooth_angle_deg: float = Field(10.0, gt=0, lt=90, description="region growing: max angle between neighbour normals")
+    smooth_angle_deg: float = Field(10.0, gt=0, lt=90, description="region growing: max angle between neighbour normals (degrees)")
     seed_curvature_max: float = Field(
         0.1, gt=0, le=1 / 3, description="region growing: points with surface variation above this do not propagate")
     bend_split_angle_deg: float = Field(
-        30.0, gt=0, le=180, description="split segments whose horizontal normals spread more than this (180 = off)")
+        30.0, gt=0, le=180, description="split segments whose horizontal normals spread "
+                                        "more than this (degrees; 180 = off)")
     split_window_m: float = Field(
-        0.0, ge=0, description="terrace split (split.py): compare the façade top over this length either side of "
-                               "each place along a segment (0 = no split; 2.0 is the tested setting). Off by "
-                               "default, measured: on Den Haag 2.0 raises the buildings covered from 30 to 37 of "
-                               "156, but on campus seeds 0-4 it cut single buildings (segments 144 → 164) and "
-                               "lowered matching (14 → 13 of 15 runs at P ≥ 0.95, R ≥ 0.85) and OSM accuracy")
-    split_bin_m: float = Field(0.5, gt=0, description="terrace split: profile bin length along the façade")
+        0.0, ge=0, description="terrace split: length compared either side of each place along a "
+                               "façade top (m; 0 = no split; 2.0 for terraced cities)")
+    split_bin_m: float = Field(0.5, gt=0, description="terrace split: profile bin length along the façade (m)")
     split_top_step_m: float = Field(
-        0.3, ge=0, description="terrace split: cut where the façade top (eaves) steps by at least this (0 = off)")
+        0.3, ge=0, description="terrace split: cut where the façade top (eaves) steps by at least this (m; 0 = off)")
     split_setback_m: float = Field(
-        0.0, ge=0, description="terrace split: cut where the façade plane steps back by at least this (0 = off; "
-                               "0.2-0.3 m changed nothing on campus and Den Haag: set-backs already break growing)")
+        0.0, ge=0, description="terrace split: cut where the façade plane steps back by at least this (m; 0 = off)")
     split_turn_deg: float = Field(
-        0.0, ge=0, description="terrace split: cut where the façade direction turns by at least this (0 = off; "
-                               "2-4° changed no covered building on campus or Den Haag, +0-5 segments)")
+        0.0, ge=0, description="terrace split: cut where the façade direction "
+                               "turns by at least this (degrees; 0 = off)")
     split_min_end_m: float = Field(
-        5.0, ge=0, description="terrace split: no cut closer than this to a segment's end (façade tops droop "
-                               "there; pieces under min_diameter_m would be dropped: 3 m lost 0.03 of the "
-                               "campus façade recall)")
+        5.0, ge=0, description="terrace split: no cut closer than this to a "
+                               "segment's end, where façade tops droop (m)")
     split_min_gap_m: float = Field(
-        5.0, ge=0, description="terrace split: cuts at least this far apart (the stronger step wins)")
+        5.0, ge=0, description="terrace split: cuts at least this far apart (m; the stronger step wins)")
     merge_contact_m: float = Field(
         1.0, ge=0, description="merge segments whose façade points come this close (2D) at equal wall height (0 = off)")
     merge_gap_m: float = Field(
-        0.0, ge=0, description="merge pieces of one wall (parallel, in line) up to this far apart at equal height "
-                               "(0 = off; 2 m measured +0.3 % recall, -1 building covered on campus)")
-    merge_height_tol_m: float = Field(1.0, gt=0, description="max difference of wall-top heights where segments meet")
+        0.0, ge=0, description="merge pieces of one wall (parallel, in line) up to "
+                               "this far apart at equal height (m; 0 = off)")
+    merge_height_tol_m: float = Field(1.0, gt=0, description="max difference of wall-top heights where segments meet (m)")
     merge_min_corner_deg: float = Field(
-        45.0, ge=0, le=90, description="merge only segments whose façades turn by at least this (a corner)")
-    min_diameter_m: float = Field(5.0, ge=0, description="drop segments narrower than this horizontally")
+        45.0, ge=0, le=90, description="merge only segments whose façades turn by at least this (degrees; a corner)")
+    min_diameter_m: float = Field(5.0, ge=0, description="drop segments narrower than this horizontally (m)")
     min_height_m: float = Field(
         2.5, ge=0, description="drop segments whose points span less than this vertically (cars, fences)")
     min_points: int = Field(30, ge=1, description="drop segments with fewer analysis points")
     absorb_hops: int = Field(
-        3, ge=0, description="leftover façade points (rough, or in dropped fragments) join the segment of a "
-                             "neighbour whose normal agrees, through up to this many graph links (0 = off; "
-                             "campus wall recall 0.900 → 0.922 at 3, 0.951 at 10 with 20°, but 10/20° moved "
-                             "the registration's 3D median error 0.213 → 0.237 m, 3/10° 0.218 m)")
+        3, ge=0, description="leftover façade points join a neighbour segment whose normal "
+                             "agrees, through up to this many graph links (0 = off)")
     absorb_link_m: float = Field(
         1.0, gt=0, description="absorption follows graph links no longer than this (3D, metres)")
     absorb_angle_deg: float = Field(
@@ -118,11 +112,11 @@ class RegionGrowingParams(StageParams):
         50.0, gt=0, description="points farther than this (2D) from every segment get carrier -1")
     voxel_m: float = Field(0.3, ge=0, description="voxel size of the analysis cloud (0 = every point); "
                                                   "labels are carried back to every input point")
-    vertical_bin_deg: float = Field(2.0, gt=0, le=10, description="sphere histogram bin size for the vertical")
+    vertical_bin_deg: float = Field(2.0, gt=0, le=10, description="sphere histogram bin size for the vertical (degrees)")
     vertical_min_support: float = Field(
         0.2, ge=0, le=1, description="min share of normals parallel or perpendicular (±5°) to the found vertical")
-    vertical_cell_m: float = Field(4.0, gt=0, description="cell size of the façade-above-ground sign test")
-    vertical_sample: int = Field(100_000, ge=1000, description="normals sampled for the vertical")
+    vertical_cell_m: float = Field(4.0, gt=0, description="cell size of the façade-above-ground sign test (m)")
+    vertical_sample: int = Field(100_000, ge=1000, description="normals sampled for the vertical (count)")
     boundary_cell_m: float = Field(0.25, gt=0, description="boundary points: one mean point per cell of this size")
     boundary_max_points: int = Field(2000, ge=10, description="boundary points kept per segment at most")
     keep_normals: bool = Field(True, description="return per-point normals (N,3) float32")

@@ -63,115 +63,91 @@ class DistanceMap(Stage):
 
     class Params(StageParams):
         search: Literal["anchor", "window"] = Field(
-            "anchor", description="'window': the paper's dense search of rotations × offsets around the "
-                                  "centre-line pose; 'anchor': only poses putting a façade centre on its "
-                                  "candidate's outline along the outline's tangent (exact, sparse).")
+            "anchor", description="Pose search: 'window' (the paper's rotations × offsets around "
+                                  "the centre-line pose) or 'anchor' (façade on outline)")
         max_points_per_segment: int = Field(
             200, ge=4, description="Street boundary points per segment in the fine search (released code: 200).")
         coarse_points_per_segment: int = Field(
-            24, ge=2, description="Points per segment in the coarse search over all candidates.")
+            24, ge=2, description="Points per segment in the coarse search over all candidates (count).")
         truncate_px: float = Field(
             5.0, gt=0, description="Chamfer distances are truncated here (released code: 5 px threshold).")
         offset_cap_m: float = Field(
             20.0, ge=0, description="Cap on the offset search radius (metres).")
         offset_window_scale: float = Field(
-            1.0, ge=0, description="Offset radius = scale·(ρ_p + ρ_q)/2 (ρ from the candidate segments' "
-                                   "extents), capped by offset_cap_m.")
+            1.0, ge=0, description="Offset radius = scale·(ρ_p + ρ_q)/2 (unitless; ρ from the "
+                                   "candidate segments' extents), capped by offset_cap_m.")
         coarse_offset_step_px: int = Field(
             8, ge=1, description="Offset step of the coarse search (halved per refinement level down to 1 px).")
         rotation_window_deg: float = Field(
             30.0, ge=0, description="Rotations searched around the centre-line angle: ±this (degrees).")
         rotation_window_from_extent: bool = Field(
-            True, description="Anchored search: widen the rotation window per candidate to what the segments' "
-                              "extents allow (asin((ρ_p + ρ_q) / centre-line length)).")
+            True, description="Anchored search: widen the rotation window per "
+                              "candidate to asin((ρ_p + ρ_q) / centre-line length)")
         rotation_window_max_deg: float = Field(
             60.0, ge=0, le=180, description="Cap on that widened window (a straight façade also fits its wall "
                                             "turned by 180°; the cap keeps such flips out).")
         rotation_step_deg: float = Field(
-            5.0, gt=0, description="Rotation step of the coarse search (halved per refinement level).")
-        anchor_spacing_m: float = Field(1.0, gt=0, description="Outline sample spacing for anchored hypotheses.")
+            5.0, gt=0, description="Rotation step of the coarse search (degrees; halved per refinement level).")
+        anchor_spacing_m: float = Field(1.0, gt=0, description="Outline sample spacing for anchored hypotheses (m).")
         anchor_tolerance_px: float = Field(
-            3.0, gt=0, description="An anchored hypothesis must put the other façade centre this close to its "
-                                   "candidate's outline.")
-        max_hypotheses: int = Field(16, ge=1, description="Anchored hypotheses scored per candidate.")
+            3.0, gt=0, description="An anchored hypothesis must put the other façade centre "
+                                   "this close to its candidate's outline (px).")
+        max_hypotheses: int = Field(16, ge=1, description="Anchored hypotheses scored per candidate (count).")
         min_wall_share: float = Field(
-            0.3, ge=0, le=1, description="A street segment anchors hypotheses by its dominant straight wall when "
-                                         "that wall holds at least this share of its points.")
+            0.3, ge=0, le=1, description="Share of a segment's points its dominant straight "
+                                         "wall needs to anchor hypotheses (0-1)")
         rescore_budget: int = Field(
-            200_000_000, ge=0, description="Look-ups allowed to score the candidates that are not refined with "
-                                           "all points; beyond it they use the coarse points (an unbiased "
-                                           "estimate at an eighth of the cost).")
+            200_000_000, ge=0, description="Look-ups for scoring unrefined candidates with all points; "
+                                           "beyond it the coarse points are used (count)")
         refine_top_k: int = Field(
-            12, ge=1, description="Candidates per street edge refined after the coarse search.")
+            12, ge=1, description="Candidates per street edge refined after the coarse search (count).")
         length_tolerance_m: float = Field(
             3.0, ge=0, description="Absolute centre-line length tolerance (metres).")
         length_tolerance_fraction: float = Field(
-            0.05, ge=0, description="Relative centre-line length tolerance (SfM scale drift).")
+            0.05, ge=0, description="Relative centre-line length tolerance (0-1; SfM scale drift).")
         centroid_slack: float = Field(
             1.0, ge=0, description="Share of ρ_p + ρ_q added to the length tolerance (1 = the exact bound "
                                    "for façades lying on their building's outline).")
         extent_tolerance_m: float = Field(
-            8.0, ge=0, description="A façade longer than its candidate segment's diameter plus this is pruned. "
-                                   "A façade run across flush neighbours is longer than its own building (its "
-                                   "majority): at 3 m, campus seed 2 label map lost true candidates 3.1-7.2 m "
-                                   "over. Held-out seeds 5-7 (gps_cost_weight 0.3): recall min 0.874 at 5 m, "
-                                   "0.897 at 8 and 12 m, precision min 0.957 throughout.")
+            8.0, ge=0, description="Prune a candidate when the façade is longer than the "
+                                   "candidate segment's diameter plus this (m)")
         raw_cost_at_null: float = Field(
-            0.5, gt=0, le=1, description="Normalisation: cost = min(1, chamfer / this), so a candidate whose "
-                                         "truncated chamfer reaches this is no better than null (1: no "
-                                         "rescaling; campus scene with GPS: precision 0.86 → 0.90, recall "
-                                         "0.88 → 0.85 going from 1 to 0.5).")
+            0.5, gt=0, le=1, description="Raw cost (mean truncated chamfer / truncate_px, 0-1) that "
+                                         "equals null: cost = min(1, raw / this); 1: no rescaling")
         directional: bool = Field(
             False, description="Directional chamfer: add an orientation channel (distance + weight·|Δangle|).")
         orientation_bins: int = Field(
-            8, ge=2, le=32, description="Orientation bins over [0, π) when directional.")
+            8, ge=2, le=32, description="Orientation bins over [0, π) when directional (count).")
         orientation_weight_px_per_rad: float = Field(
-            10.0, ge=0, description="Directional chamfer weight (released code: DT + 10·|Δangle|).")
+            10.0, ge=0, description="Directional chamfer weight (px per radian; released code: DT + 10·|Δangle|).")
         free_space_weight: float = Field(
-            0.5, ge=0, le=1, description="With street/sparse: weight of the free-space term, the share of probe "
-                                         "points (façade points moved towards the cameras that saw them) that "
-                                         "fall inside the candidate segment; it tells a façade's front from "
-                                         "the building's back wall. 0: chamfer only (paper).")
+            0.5, ge=0, le=1, description="With street/sparse: weight of the free-space term that tells a "
+                                         "façade's front from its back wall (0: chamfer only)")
         probe_offset_m: float = Field(
-            2.0, gt=0, description="Distance of the free-space probes from the façade.")
+            2.0, gt=0, description="Distance of the free-space probes from the façade (m).")
         gps_radius_m: float | None = Field(
-            None, gt=0, description="With street/gps.csv: prune candidates placing a segment centre farther "
-                                    "than this from its GPS-implied position. None: gps_radius_sigmas·σ + "
-                                    "gps_radius_margin_m, σ the median sigma_m of the fixes (10 m when the "
-                                    "file gives none; raised per segment to its local fit's residual, see "
-                                    "gps_radius_fit_sigmas); 3 m fixes → 20 m. The campus scenes' local GPS "
-                                    "fits put segments within 13 m of the truth; at 60 m repeated façades of the "
-                                    "next buildings along the street stay candidates.")
+            None, gt=0, description="With GPS: prune poses putting a segment centre farther than this "
+                                    "from its GPS position (m; None: from the fixes' σ)")
         gps_cost_weight: float = Field(
-            0.3, ge=0, description="With GPS: add weight·(d / GPS radius)² to the raw chamfer cost, d the larger "
-                                   "distance of the pose-placed segment centres from their GPS-implied "
-                                   "positions (a soft prior inside the hard radius; raw cost 0.5 = null). "
-                                   "It tells repeated façades of neighbouring buildings apart (terraced houses "
-                                   "cut by the street step). 0: hard pruning only. Held-out campus seeds 5-7 × "
-                                   "3 sources, loopy BP, extent_tolerance_m 8, precision min / recall min: "
-                                   "0.957 / 0.897 at 0.2, 0.3 and 0.45, 0.967 / 0.862 at 0.6 (0.3: highest "
-                                   "mean recall).")
+            0.3, ge=0, description="With GPS: weight w of the soft prior w·(d / GPS radius)² "
+                                   "added to the raw chamfer cost (0: hard pruning only)")
         gps_radius_sigmas: float = Field(5.0, gt=0, description="GPS radius in fix σ when gps_radius_m is None.")
         gps_radius_fit_sigmas: float | None = Field(
-            3.0, gt=0, description="When gps_radius_m is None: a segment's radius is at least this many times "
-                                   "the RMS residual (m) of its local GPS fit (+ gps_radius_margin_m), so it "
-                                   "widens where the fit itself shows that a rigid motion does not explain the "
-                                   "fixes (SfM drift, biased fixes; campus seed 2: residuals ~20 m, predicted "
-                                   "positions 20-50 m off, i.e. up to ~2.3 residuals). None: one radius from "
-                                   "σ for every segment.")
+            3.0, gt=0, description="With gps_radius_m None: widen a segment's radius to this "
+                                   "many RMS residuals of its local GPS fit (None: off)")
         gps_radius_margin_m: float = Field(
             5.0, ge=0, description="Added to the σ-based GPS radius (pose error of the candidate itself).")
         gps_angle_deg: float | None = Field(
-            45.0, gt=0, description="With GPS: prune candidates whose rotation differs more (None: no test).")
+            45.0, gt=0, description="With GPS: prune candidates whose rotation differs more (degrees; None: no test).")
         gps_fit_fixes: int = Field(
-            100, ge=3, description="GPS fixes per local rigid fit (nearest to the segment).")
+            100, ge=3, description="GPS fixes per local rigid fit (count; nearest to the segment).")
         route_prior: RoutePriorConfig = Field(
             default_factory=RoutePriorConfig,
             description="Without street/gps.csv: place the route by its façades first, then prune as with GPS.")
         workers: int = Field(2, ge=1, le=64, description="Threads for the searches, at most the run's thread "
                                                       "budget (toolkit.threads; results do not depend on it).")
         max_elements: int = Field(
-            4_000_000, ge=10_000, description="Look-ups per vectorised batch (bounds temporary memory).")
+            4_000_000, ge=10_000, description="Look-ups per vectorised batch (count; bounds temporary memory).")
 
     @classmethod
     def scene_needs(cls, params: StageParams) -> tuple[str, ...]:
@@ -249,8 +225,11 @@ class DistanceMap(Stage):
             from toolkit.matching.gps import gps_prior
 
             prior = gps_prior(scene, street, n_local=p.gps_fit_fixes, warn=obs.warn)
+        source, figures = ("gps", None) if prior is not None else (None, None)
         if prior is None and p.route_prior.enabled and scene is not None and scene.has("sparse"):
-            prior = self._route_prior(street, overview, scene, obs)
+            placed = self._place_route(street, overview, scene, obs)
+            prior, figures = placed.prior, placed.figures()
+            source = "route_placement" if prior is not None else None
         seg_radius = self._gps_radii(prior, len(s_cent)) if prior is not None else None
         near = None
         if prior is not None:  # only labels near each edge's GPS midpoint can pass its test below
@@ -288,7 +267,7 @@ class DistanceMap(Stage):
             stats["near_gps"] = len(near[0])
         if len(pe) == 0:
             obs.warn("every candidate was pruned: all street edges get the null label")
-            return DataCosts(cost, theta_out, t_out)
+            return DataCosts(cost, theta_out, t_out, source, figures)
 
         # street points: fine (≤ max_points) and a nested coarse subset per segment
         fine, coarse, f_ang, c_ang = self._street_points(street, gsd)
@@ -365,7 +344,7 @@ class DistanceMap(Stage):
                      setup_s=round(t_setup, 2), total_s=round(time.perf_counter() - t0, 2))
         if obs.wants_debug:
             _debug(obs, stats, cost, theta_out, t_out, edges, fine, grid)
-        return DataCosts(cost, theta_out, t_out)
+        return DataCosts(cost, theta_out, t_out, source, figures)
 
     def _rotations(self) -> np.ndarray:
         p = self.params
@@ -490,8 +469,8 @@ class DistanceMap(Stage):
             turn.append(np.abs(_wrap(theta - prior.angle[seg])))
         return np.stack(dist, axis=1), np.stack(turn, axis=1)
 
-    def _route_prior(self, street: StreetSegments, overview: OverviewSegments, scene: Scene, obs):
-        """The route placed by its façades (``toolkit.matching.route_prior``), or None with a warning."""
+    def _place_route(self, street: StreetSegments, overview: OverviewSegments, scene: Scene, obs):
+        """The route placed by its façades (``toolkit.matching.route_prior``); a warning when unused."""
         from toolkit.matching.route_prior import capture_order, place_route
         from toolkit.scene import load_sparse
 
@@ -501,7 +480,7 @@ class DistanceMap(Stage):
         obs.debug("route_placement", DebugText(placed.describe()))
         if placed.prior is None:
             obs.warn(f"route placement not used ({placed.reason}): every over-view pair is searched")
-        return placed.prior
+        return placed
 
     def _uses_probes(self, scene) -> bool:
         return self.params.free_space_weight > 0 and scene is not None and scene.has("sparse")

@@ -1,4 +1,4 @@
-"""K-nearest-segment graphs and the conjugate graph (METHOD.md §3), as arrays and networkx graphs.
+"""K-nearest-segment graphs and the conjugate graph (Ling & Qin 2022, §3.3.1), as arrays and networkx graphs.
 
 A conjugate node is a street edge (j, k); its non-null labels are the over-view edges in both
 orders (label 2f = edge f as (p, q), label 2f+1 = (q, p)); two conjugate nodes are neighbours when

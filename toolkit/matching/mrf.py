@@ -1,4 +1,4 @@
-"""The matching MRF of METHOD.md §5, laid out so that solvers never touch an L×L table.
+"""The matching MRF (Ling & Qin 2022, §3.3.1, Eq. 1–2), laid out so that solvers never touch an L×L table.
 
 Each conjugate node keeps only its *active* labels: the non-null labels cheaper than its null label
 (pruned ones cost +inf; one costing at least D(null) is dominated by null, whose V is always c1, so
@@ -31,21 +31,16 @@ PAIR_CHUNK = 2_000_000  # a-side entries per join chunk (bounds the join's tempo
 
 
 class SmoothnessParams(StageParams):
-    """The energy of METHOD.md §5 and the per-segment vote (§6), shared by every match.* stage."""
+    """The energy (Ling & Qin 2022, Eq. 1–2) and the per-segment vote, shared by every match.* stage."""
 
-    c1: float = Field(0.1, ge=0.0, description="smoothness cost V for compatible label pairs or a null label")
-    c2: float = Field(0.6, ge=0.0, description="smoothness cost V for incompatible label pairs (c2 >= c1)")
+    c1: float = Field(0.1, ge=0.0, description="smoothness cost V for compatible label pairs or a "
+                                               "null label (unitless, the scale of D)")
+    c2: float = Field(0.6, ge=0.0, description="smoothness cost V for incompatible label pairs (unitless, c2 >= c1)")
     theta_th_deg: float = Field(10.0, gt=0.0, description="max rotation difference of compatible labels (deg)")
     t_th_m: float = Field(100.0, gt=0.0, description="max translation difference of compatible labels (m)")
     tie_min_extent_m: float = Field(
-        0.0, ge=0.0, description="vote: when a street segment's winning over-view segment has exactly as many "
-                                 "votes as the null votes counted against it, match it only if the segment is at "
-                                 "least this long (horizontal diameter, m; graph.knn stores it): a wall of a few "
-                                 "metres fits many outlines. 0 (default): every tie matches. Held-out campus "
-                                 "seeds 5-7 × 3 sources, loopy BP, over-view K 10: 6 m gives precision min "
-                                 "0.959 → 0.966 but recall min 0.873 → 0.855 (the street step's terrace split "
-                                 "makes many short true façades); without that split 6 m dropped 4 wrong and 2 "
-                                 "right matches")
+        0.0, ge=0.0, description="vote: a tie with the null votes matches only a segment at "
+                                 "least this long (horizontal diameter, m; 0: every tie)")
 
     @model_validator(mode="after")
     def _c1_not_above_c2(self) -> SmoothnessParams:

@@ -1,6 +1,6 @@
 """What every match.* solver shares: its result, per-iteration logging, voting into ``Matches``.
 
-Voting (METHOD.md §6): each street segment collects, from every incident conjugate node (street
+Voting (Ling & Qin 2022, §3.3.1, after Eq. 4): each street segment collects, from every incident conjugate node (street
 edge), the over-view segment that edge's label maps it to (null when the label is null). The most
 voted over-view segment wins (ties: lower mean unary cost); the segment is null when it has no
 incident edge or when the null votes that count strictly outnumber the winner; a tie matches

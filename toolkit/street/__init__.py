@@ -1,1 +1,1 @@
-"""Street-view building segmentation helpers (METHOD.md §2), used by ``street.region_growing``."""
+"""Street-view building segmentation helpers (Ling & Qin 2022, street-view building segments), used by ``street.region_growing``."""

@@ -1,4 +1,4 @@
-"""What every point moves with: the nearest façade segment within a horizontal radius (METHOD.md §2),
+"""What every point moves with: the nearest façade segment within a horizontal radius (Ling & Qin 2022),
 and the per-segment ground statistics later stages use (median height, median normal)."""
 
 from __future__ import annotations

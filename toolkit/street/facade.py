@@ -1,4 +1,4 @@
-"""Façade points: steep normals whose neighbourhood is steep too (METHOD.md §2).
+"""Façade points: steep normals whose neighbourhood is steep too (Ling & Qin 2022, street-view building segments).
 
 A point is a façade point when the angle between its normal and the vertical exceeds
 ``angle_deg`` AND more than ``neighbour_fraction`` of its k nearest neighbours (itself excluded)

@@ -1,4 +1,4 @@
-"""Region growing of façade points as connected components of a kNN graph (METHOD.md §2).
+"""Region growing of façade points as connected components of a kNN graph (Rabbani et al. 2006).
 
 Rabbani et al. (2006) grow regions from the lowest-curvature seeds: a neighbour joins when its
 normal is within ``smooth_angle_deg`` of the current point's, and continues the growth only if its

@@ -1,4 +1,4 @@
-"""The vertical direction of a street cloud from the distribution of its normals (METHOD.md §2).
+"""The vertical direction of a street cloud from the distribution of its normals (Ling & Qin 2022, street-view building segments).
 
 1. Histogram of normal orientations on the sphere (Fibonacci lattice, ~``bin_deg`` cells, each
    normal counted with its antipode since PCA normals have no sign); candidates are local maxima
