@@ -24,9 +24,8 @@ class Nearest(Stage):
     class Params(StageParams):
         pass_gap_m: float | None = Field(
             200.0, gt=0,
-            description="A point captured farther than this along the route (metres) from its segment is "
-                        "re-anchored on the nearest segment of its own pass, and cameras are anchored on "
-                        "segments of their own pass (None: off); as warp.inverse_log.")
+            description="Route distance (m) beyond which a point or camera counts as "
+                        "another pass and is re-anchored on its own pass (None: off)")
         pass_sparse_gap_m: float = Field(
             2.0, gt=0, description="Only sparse points within this distance of a street point give it a route "
                                    "position (metres).")

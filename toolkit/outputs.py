@@ -81,7 +81,6 @@ def coverage(results: dict[str, Any]) -> dict[str, Any] | None:
 def write_outputs(out: Path, plan, results: dict[str, Any], timings: dict[str, float],
                   warnings: list[str], assessment=None) -> None:
     """``assessment``: the run's ``toolkit.status.Assessment`` (assessed here when None)."""
-    from toolkit.io.cloud import write_ply
     from toolkit.status import assess
 
     if assessment is None:
@@ -96,8 +95,9 @@ def write_outputs(out: Path, plan, results: dict[str, Any], timings: dict[str, f
 
     registration = results.get("registration")
     if registration is not None:
-        write_ply(out / "registered.ply", registration.points,
-                  extra={"segment": registration.point_segment.astype(np.int32)})
+        from toolkit.export import write_registered
+
+        write_registered(out, plan, results, warnings)
     rows = transforms_table(results)
     if rows:
         dump_json(out / "transforms.json", {"crs": plan.scene.crs, "segments": rows})
@@ -107,12 +107,16 @@ def write_outputs(out: Path, plan, results: dict[str, Any], timings: dict[str, f
 
         write_model(cameras.model, out / "sparse", binary=False)
         write_model(cameras.model, out / "sparse", binary=True)
+        from toolkit.export import crs_wkt
+
+        (out / "sparse" / "crs.wkt").write_text(crs_wkt(plan.scene.crs) + "\n")  # COLMAP has no CRS field
     metrics = results.get("metrics")
     # the self-assessment first: it is what a user without truth reads
     metrics_values: dict[str, Any] = assessment.to_json()
     metrics_values.update(metrics.values if metrics is not None else {})
     if cov is not None:
         metrics_values["coverage"] = cov
+    metrics_values["crs"] = plan.scene.crs
     metrics_values["warnings"] = list(warnings)
     dump_json(out / "metrics.json", metrics_values)
     # timings vary run to run: kept apart so metrics.json is reproducible byte for byte

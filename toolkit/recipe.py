@@ -16,9 +16,10 @@ import yaml
 from toolkit.errors import RecipeError
 from toolkit.stage import KINDS
 
-TOP_KEYS = ("recipe", "name", "base", "scene", "steps", "log")
+TOP_KEYS = ("recipe", "name", "base", "scene", "steps", "log", "outputs")
 STEP_KEYS = ("use", "params")
 LOG_KEYS = ("rerun", "max_points", "progress", "report")
+OUTPUT_KEYS = ("ply",)  # outputs: {ply: false} skips registered.ply (registered.laz is always written)
 
 
 @dataclass(frozen=True)
@@ -37,13 +38,17 @@ class Recipe:
     scene: str | None
     steps: tuple[StepSpec, ...]
     log: dict[str, Any] = field(default_factory=dict)
+    outputs: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
-        return {
+        out = {
             "recipe": 1, "name": self.name, "scene": self.scene,
             "steps": {s.name: {"use": s.use, "params": dict(s.params)} for s in self.steps},
             "log": dict(self.log),
         }
+        if self.outputs:
+            out["outputs"] = dict(self.outputs)
+        return out
 
     def to_yaml(self) -> str:
         return yaml.safe_dump(self.to_dict(), sort_keys=False)
@@ -86,8 +91,8 @@ def _merge(base: dict[str, Any], child: dict[str, Any]) -> dict[str, Any]:
                     steps[name] = merged
                 else:
                     steps[name] = copy.deepcopy(spec)
-        elif key == "log" and isinstance(value, dict) and isinstance(out.get("log"), dict):
-            out["log"].update(value)
+        elif key in ("log", "outputs") and isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key].update(value)
         else:
             out[key] = copy.deepcopy(value)
     return out
@@ -197,4 +202,17 @@ def _validate(path: Path, data: dict[str, Any]) -> Recipe:
     bad = [k for k in log if k not in LOG_KEYS]
     if bad:
         raise RecipeError(f"{path}: log: unknown key {bad[0]!r} (allowed: {', '.join(LOG_KEYS)})")
-    return Recipe(path=path, name=name, scene=scene, steps=tuple(steps), log=dict(log))
+    return Recipe(path=path, name=name, scene=scene, steps=tuple(steps), log=dict(log),
+                  outputs=_outputs(path, data.get("outputs")))
+
+
+def _outputs(path: Path, outputs: Any) -> dict[str, Any]:
+    outputs = outputs or {}
+    if not isinstance(outputs, dict):
+        raise RecipeError(f"{path}: outputs: must be a mapping (e.g. outputs: {{ply: false}})")
+    bad = [k for k in outputs if k not in OUTPUT_KEYS]
+    if bad:
+        raise RecipeError(f"{path}: outputs: unknown key {bad[0]!r} (allowed: {', '.join(OUTPUT_KEYS)})")
+    if not isinstance(outputs.get("ply", True), bool):
+        raise RecipeError(f"{path}: outputs.ply: must be true or false, got {outputs['ply']!r}")
+    return dict(outputs)

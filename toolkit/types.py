@@ -85,6 +85,8 @@ class SparseModel:
     cameras: camera_id → Camera; image_names: (C,) in file order; image_ids, camera_ids: (C,) int;
     R: (C,3,3), t: (C,3) world-to-camera; points3d_ids: (P,) int, points3d: (P,3) float64,
     points3d_rgb: (P,3) uint8; observations: (K,4) float64 rows (image index, point3d index, u, v).
+    points3d_error_px: (P,) float64 mean reprojection error of each point over its track (px, COLMAP's
+        ERROR column; -1: no observation); None when unknown (written as 0).
     qvec: (C,4) w,x,y,z as read from a file (kept so an unchanged model round-trips byte-exact);
         None when the poses were computed. ``R`` is authoritative.
     """
@@ -100,6 +102,7 @@ class SparseModel:
     points3d_rgb: Array
     observations: Array
     qvec: Array | None = None
+    points3d_error_px: Array | None = None
 
     @property
     def centres(self) -> Array:
@@ -120,6 +123,7 @@ class SceneFiles:
     street_cloud: Path | None = None
     sparse: Path | None = None
     gps: Path | None = None
+    dem: Path | None = None
     truth_lidar: Path | None = None
     truth_street_points: Path | None = None
     truth_street_labels: Path | None = None

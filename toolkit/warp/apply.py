@@ -23,8 +23,9 @@ from toolkit.refine.blas import single_threaded_blas
 from toolkit.refine.route import camera_route_positions, sparse_segments
 from toolkit.threads import map_in_order
 from toolkit.types import Registration, Scene, SegmentTransforms, SparseModel, StreetSegments
-from toolkit.warp.blend import SegmentIndex, blend_points, blend_rigid
+from toolkit.warp.blend import SegmentIndex, blend_rigid
 from toolkit.warp.cells import levelled_xy
+from toolkit.warp.model import PointWarp
 from toolkit.warp.passes import point_route_positions, reanchor_other_pass, sparse_route_positions
 
 @dataclass(frozen=True)
@@ -140,7 +141,9 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Sc
         anchors[ask] = reanchor_other_pass(anchors[ask], xy[ask], point_s, segment_s,
                                            np.asarray(index.all_tree.data), index.all_seg,
                                            passes.pass_gap_m, passes.route_scale)
-    moved = blend_points(pts, xy, anchors, T, index, k, d_min, cell_m, relative=relative)
+    warp = PointWarp(np.asarray(street.origin, np.float64), np.asarray(street.up_rotation, np.float64), T, index,
+                     k, d_min, cell_m, relative)
+    moved = warp.maps(pts, anchors, xy).apply(pts)
     names: tuple[str, ...] = ()
     R, t, spread = np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0)
     if model is not None and len(model.image_names):
@@ -163,4 +166,4 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Sc
         R = np.einsum("cab,cdb->cad", model.R, Rb)          # R_wc · R̄ᵀ
         t = -np.einsum("cab,cb->ca", R, pos)
     return Registration(points=moved, image_names=names, R=R, t=t, point_segment=anchors.astype(np.int64, copy=False),
-                        camera_spread_m=spread)
+                        camera_spread_m=spread, warp=warp.with_source(pts, anchors))

@@ -25,6 +25,8 @@ without a sort (``toolkit.warp.cells``).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from toolkit.warp.cells import CellBlocks, cell_blocks
@@ -131,30 +133,60 @@ def blended_affine(blocks: CellBlocks, T: np.ndarray, index: SegmentIndex, k: in
     return A, b
 
 
+@dataclass(frozen=True)
+class PointMaps:
+    """The blended affine map of each point: ``A[rows[i]] p_i + b[rows[i]] + origin``.
+
+    rows: (N,) block (or segment, without blending) of each point; A: (U,3,3); b: (U,3);
+    origin: (3,) the mean translation of the valid transforms (keeps b small: scene coordinates
+    are large UTM numbers).
+    """
+
+    rows: np.ndarray
+    A: np.ndarray
+    b: np.ndarray
+    origin: np.ndarray
+
+    def apply(self, points: np.ndarray, chunk: int = 1 << 16) -> np.ndarray:
+        """(N,3) points of the input street frame → scene CRS, in chunks (bounded memory)."""
+        out = np.empty((len(points), 3), dtype=np.float64)
+        for s in range(0, len(points), chunk):
+            r = self.rows[s:s + chunk]
+            moved = out[s:s + chunk]
+            np.add(np.einsum("nab,nb->na", self.A[r], np.asarray(points[s:s + chunk], np.float64)), self.b[r],
+                   out=moved)
+            moved += self.origin
+        return out
+
+    def rotate(self, vectors: np.ndarray) -> np.ndarray:
+        """(N,3) directions (normals) turned by each point's linear map, then renormalised (a blend
+        of rotations is close to, not exactly, a rotation)."""
+        turned = np.einsum("nab,nb->na", self.A[self.rows], np.asarray(vectors, np.float64))
+        norm = np.linalg.norm(turned, axis=1, keepdims=True)
+        return np.divide(turned, norm, out=np.zeros_like(turned), where=norm > 0)
+
+
+def point_maps(xy: np.ndarray, anchors: np.ndarray, T: np.ndarray, index: SegmentIndex, k: int, d_min: float,
+               cell_m: float = 0.5, relative: bool = False) -> PointMaps:
+    """The blend of paper Eq. 6 at each point: Σ_j w_j T_j(p) / Σ_j w_j over its anchor and the
+    anchor's k neighbours (k = 0: the anchor's transform alone), weights of its ``cell_m`` cell.
+
+    The one implementation of the point warp: the warp stages and ``crossview apply`` call it.
+    """
+    anchors = np.asarray(anchors, np.int64)
+    origin = T[index.valid, :3, 3].mean(axis=0)
+    if k == 0 or len(anchors) == 0:
+        return PointMaps(anchors, T[:, :3, :3], T[:, :3, 3] - origin, origin)
+    blocks = cell_blocks(xy, anchors, cell_m)
+    A, b = blended_affine(blocks, T, index, k, d_min, origin, relative)
+    return PointMaps(blocks.rows, A, b, origin)
+
+
 def blend_points(points: np.ndarray, xy: np.ndarray, anchors: np.ndarray, T: np.ndarray, index: SegmentIndex,
                  k: int, d_min: float, cell_m: float = 0.5, chunk: int = 1 << 16,
                  relative: bool = False) -> np.ndarray:
-    """Σ_j w_j T_j(p) / Σ_j w_j over each point's anchor and its k neighbours (k = 0: no blending).
-
-    The weights of a point are those of the centre of its ``cell_m`` cell (per anchor), so the
-    blend is one affine map per cell, applied to the points in chunks (bounded memory).
-    """
-    out = np.empty((len(points), 3), dtype=np.float64)
-    if len(points) == 0:
-        return out
-    origin = T[index.valid, :3, 3].mean(axis=0)
-    if k == 0:                       # no blending: every point takes its anchor's transform
-        rows, A, b = np.asarray(anchors, np.int64), T[:, :3, :3], T[:, :3, 3] - origin
-    else:
-        blocks = cell_blocks(xy, np.asarray(anchors, np.int64), cell_m)
-        rows = blocks.rows
-        A, b = blended_affine(blocks, T, index, k, d_min, origin, relative)
-    for s in range(0, len(points), chunk):
-        r = rows[s:s + chunk]
-        moved = out[s:s + chunk]
-        np.add(np.einsum("nab,nb->na", A[r], np.asarray(points[s:s + chunk], np.float64)), b[r], out=moved)
-        moved += origin
-    return out
+    """Σ_j w_j T_j(p) / Σ_j w_j over each point's anchor and its k neighbours (``point_maps``)."""
+    return point_maps(xy, anchors, T, index, k, d_min, cell_m, relative).apply(points, chunk)
 
 
 def blend_rigid(points: np.ndarray, xy: np.ndarray, anchors: np.ndarray, T: np.ndarray, index: SegmentIndex,

@@ -102,6 +102,27 @@ class SegmentIndex:
             neighbours[int(i)] = other[lo:hi][order][gap[lo:hi][order] <= max_gap_m]
         return cls(valid, trees, cKDTree(all_xy), all_seg, neighbours)
 
+    @classmethod
+    def from_arrays(cls, valid: np.ndarray, footprint_xy: np.ndarray, footprint_segment: np.ndarray,
+                    neighbours: np.ndarray) -> SegmentIndex:
+        """The index stored by ``to_arrays`` (``toolkit.warp.store``), footprints and neighbours as built."""
+        valid = np.asarray(valid, np.int64)
+        footprint_segment = np.asarray(footprint_segment, np.int64)
+        trees = {int(i): cKDTree(footprint_xy[footprint_segment == i]) for i in valid}
+        listed = {int(i): row[row >= 0].astype(np.int64) for i, row in zip(valid, np.asarray(neighbours))}
+        return cls(valid, trees, cKDTree(footprint_xy), footprint_segment, listed)
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """valid (V,), footprint_xy (F,2) and footprint_segment (F,) in valid order, neighbours (V, K)
+        −1 padded: all ``from_arrays`` needs."""
+        width = max((len(n) for n in self.neighbours.values()), default=0)
+        table = np.full((len(self.valid), width), -1, np.int64)
+        for row, i in enumerate(self.valid):
+            listed = self.neighbours[int(i)]
+            table[row, :len(listed)] = listed
+        return {"valid": np.asarray(self.valid, np.int64), "footprint_xy": np.asarray(self.all_tree.data),
+                "footprint_segment": np.asarray(self.all_seg, np.int64), "neighbours": table}
+
     def nearest(self, xy: np.ndarray, cell_m: float = 1.0) -> np.ndarray:
         """(N,) segment of the footprint point nearest to each point: ``all_seg[all_tree.query(xy)[1]]``.
 

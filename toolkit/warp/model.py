@@ -1,0 +1,97 @@
+"""The point warp of a run as one object: what a point of the input street frame needs to be moved
+into the scene CRS, reloadable from the run folder (``toolkit.warp.store``) for ``crossview apply``.
+
+A point is moved by ``toolkit.warp.blend.point_maps`` over its *carrier* (anchor) segment and that
+segment's blending neighbours. The run's own street points carry the anchors the warp stage chose
+(valid carrier, else the nearest valid segment, then the pass check). A point of another cloud has
+no segment label: it takes the carrier of the nearest street point of the run's cloud (3D, in the
+input street frame), so the run's own points get their own carriers back.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+
+from toolkit.threads import query_workers
+from toolkit.warp.blend import PointMaps, point_maps
+from toolkit.warp.cells import levelled_xy
+from toolkit.warp.index import SegmentIndex
+
+
+@dataclass(frozen=True)
+class CarrierSource:
+    """The run's street points and the segment each was moved with (the carrier rule above).
+
+    xyz_f32: (N,3) float32 points minus ``PointWarp.origin`` (the run's input street frame);
+    segment: (N,) int32 carrier segment index of each.
+    """
+
+    xyz_f32: np.ndarray
+    segment: np.ndarray
+
+    @classmethod
+    def of(cls, points: np.ndarray, segment: np.ndarray, origin: np.ndarray) -> CarrierSource:
+        return cls(relative_f32(points, origin), np.asarray(segment, np.int32))
+
+    @functools.cached_property
+    def tree(self):
+        from scipy.spatial import cKDTree
+
+        return cKDTree(self.xyz_f32.astype(np.float64), balanced_tree=False, compact_nodes=False)
+
+    def carriers(self, points: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(carrier segment (n,) int64, distance to that street point (n,) metres)."""
+        q = relative_f32(points, origin).astype(np.float64)
+        dist, nn = self.tree.query(q, workers=query_workers(len(q)))
+        return self.segment[nn].astype(np.int64), dist
+
+
+def relative_f32(points: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """Points relative to the local origin as float32 (stored, and queried the same way: a point of
+    the run's cloud finds itself at distance 0)."""
+    return (np.asarray(points, np.float64) - origin).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class PointWarp:
+    """A run's point warp, input street frame → scene CRS.
+
+    origin (3,), up_rotation (3,3): the levelling of ``StreetSegments`` (blend distances are
+    horizontal, in the levelled frame); T: (S,4,4) segment transforms; index: footprints of the
+    valid segments and their blending neighbours; neighbours_k, min_distance_m, weight_cell_m,
+    relative_distance: the blend's parameters (``warp.inverse_log``; ``warp.nearest`` is k = 0);
+    source: the run's points and their carriers (None until the stage attaches them).
+    """
+
+    origin: np.ndarray
+    up_rotation: np.ndarray
+    T: np.ndarray
+    index: SegmentIndex
+    neighbours_k: int
+    min_distance_m: float
+    weight_cell_m: float
+    relative_distance: bool = False
+    source: CarrierSource | None = None
+
+    def levelled_xy(self, points: np.ndarray) -> np.ndarray:
+        return levelled_xy(self, points)
+
+    def maps(self, points: np.ndarray, carriers: np.ndarray, xy: np.ndarray | None = None) -> PointMaps:
+        """Each point's blended map (``toolkit.warp.blend.point_maps``)."""
+        xy = self.levelled_xy(points) if xy is None else xy
+        return point_maps(xy, carriers, self.T, self.index, self.neighbours_k, self.min_distance_m,
+                          self.weight_cell_m, self.relative_distance)
+
+    def carriers(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(carrier (n,), distance to the run's street point it was taken from (n,) m)."""
+        if self.source is None:
+            raise ValueError("this warp has no carrier source (the run's street points)")
+        return self.source.carriers(points, self.origin)
+
+    def with_source(self, points: np.ndarray, carriers: np.ndarray) -> PointWarp:
+        from dataclasses import replace
+
+        return replace(self, source=CarrierSource.of(points, carriers, self.origin))
