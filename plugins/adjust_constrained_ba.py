@@ -23,7 +23,14 @@ import numpy as np
 from pydantic import Field
 
 from toolkit.adjust.ba import BAParams, adjust_ceres, adjust_scipy, degenerate_centres
-from toolkit.adjust.model import registered_poses, registered_spread, residuals, rms_px, warp_points3d
+from toolkit.adjust.model import (
+    point_errors_px,
+    registered_poses,
+    registered_spread,
+    residuals,
+    rms_px,
+    warp_points3d,
+)
 from toolkit.forked import forks, run_forked
 from toolkit.io.colmap import replace_poses
 from toolkit.refine.blas import single_threaded_blas
@@ -80,10 +87,12 @@ class ConstrainedBA(Stage):
         model = load_sparse(scene, "adjust")
         R_w, t_w = registered_poses(model, registration)
         X_w = warp_points3d(model, R_w, t_w)
-        before = rms_px(residuals(model, R_w, t_w, X_w))
+        warped_px = residuals(model, R_w, t_w, X_w)
+        before = rms_px(warped_px)
         if len(model.observations) == 0 or len(model.image_names) == 0:
             obs.warn("the COLMAP model has no observations: poses left as warped")
-            return AdjustedCameras(replace_poses(model, R_w, t_w, X_w), before, before, 0)
+            return AdjustedCameras(replace_poses(model, R_w, t_w, X_w, point_errors_px(model, warped_px)),
+                                   before, before, 0)
         C_prior = -np.einsum("cba,cb->ca", R_w, t_w)
         bp = BAParams(p.lambda_, p.loss, p.loss_scale_px, p.max_iterations, p.function_tolerance, p.threads)
         backend = p.backend
@@ -119,8 +128,9 @@ class ConstrainedBA(Stage):
                     X = _place_unadjusted(model, dataclasses.replace(res, X=X))
                 obs.warn(f"removed {removed} of {len(model.observations) + removed} observations reprojecting "
                          f"farther than {p.max_reproj_error_px:g} px or behind their camera (adjusted again)")
-        after = rms_px(residuals(model, res.R, res.t, X))
-        return AdjustedCameras(replace_poses(model, res.R, res.t, X), before, after, iterations)
+        residual_px = residuals(model, res.R, res.t, X)
+        adjusted = replace_poses(model, res.R, res.t, X, point_errors_px(model, residual_px))
+        return AdjustedCameras(adjusted, before, rms_px(residual_px), iterations)
 
 
 def _place_unadjusted(model, res) -> np.ndarray:

@@ -6,7 +6,7 @@ it) and the reprojection RMS of the warped model is reported (before = after).
 
 from __future__ import annotations
 
-from toolkit.adjust.model import registered_poses, residuals, rms_px, warp_points3d
+from toolkit.adjust.model import point_errors_px, registered_poses, residuals, rms_px, warp_points3d
 from toolkit.io.colmap import replace_poses
 from toolkit.refine.blas import single_threaded_blas
 from toolkit.stage import Stage, StageParams
@@ -36,5 +36,6 @@ class NoAdjust(Stage):
         model = load_sparse(scene, "adjust")
         R, t = registered_poses(model, registration)
         X = warp_points3d(model, R, t)
-        rms = rms_px(residuals(model, R, t, X))
-        return AdjustedCameras(replace_poses(model, R, t, X), rms, rms, 0)
+        residual_px = residuals(model, R, t, X)
+        rms = rms_px(residual_px)
+        return AdjustedCameras(replace_poses(model, R, t, X, point_errors_px(model, residual_px)), rms, rms, 0)

@@ -110,20 +110,22 @@ def run_batch(recipe_path: Path, scenes: list[Path], out_root: Path, workers: in
               progress: bool = True) -> list[dict[str, Any]]:
     from dask.distributed import Client, LocalCluster, as_completed
 
+    from toolkit.batch_client import finished_line
     from toolkit.recipe import load_recipe
     from toolkit.registry import default_registry
 
     recipe = load_recipe(recipe_path, overrides or [])
     for spec in recipe.steps:  # fail fast on recipe errors, before starting any worker
         default_registry().get(spec.use).from_config(spec.params)
-    out_root.mkdir(parents=True, exist_ok=True)
     cluster = None
     # dask's nanny writes the workers' environment (OMP_NUM_THREADS=1, …) into this process's
     # os.environ before it spawns them: without the restore, this process (and so everything it
     # runs after the batch) is held to one thread
     environ = dict(os.environ)
     if scheduler:
-        client = Client(scheduler, timeout="10s")
+        from toolkit.batch_client import connect_scheduler
+
+        client = connect_scheduler(scheduler)
     else:
         import dask
 
@@ -134,6 +136,7 @@ def run_batch(recipe_path: Path, scenes: list[Path], out_root: Path, workers: in
         client = Client(cluster)
     rows: list[dict[str, Any]] = []
     try:
+        out_root.mkdir(parents=True, exist_ok=True)  # only once a scheduler is there: nothing half-written
         # largest scenes first (by bytes on disk): the last scene running alone on one worker is
         # then a small one, which keeps the other workers' idle tail short
         futures = [client.submit(run_one, str(recipe_path.resolve()), str(s.resolve()),
@@ -147,6 +150,7 @@ def run_batch(recipe_path: Path, scenes: list[Path], out_root: Path, workers: in
                 task = bar.add_task(f"{len(scenes)} scenes", total=len(scenes))
                 for fut in as_completed(futures):
                     rows.append(fut.result())
+                    bar.console.print(finished_line(rows[-1]), markup=False, highlight=False)
                     bar.advance(task)
         else:
             rows = [f.result() for f in as_completed(futures)]

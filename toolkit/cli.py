@@ -16,7 +16,8 @@ from typing import Sequence
 from toolkit.errors import CrossviewError
 
 # Sub-commands that live in their own modules, each exposing ``register(subparsers)``.
-PLUGGED_COMMANDS = ("toolkit.synth.command", "toolkit.compare", "toolkit.batch")
+PLUGGED_COMMANDS = ("toolkit.synth.command", "toolkit.compare", "toolkit.batch", "toolkit.apply_warp",
+                    "toolkit.scene_init")
 
 
 def _add_run_args(p: argparse.ArgumentParser) -> None:
@@ -35,7 +36,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     obs = ProgressObserver(quiet=args.quiet)
     res = run_recipe(args.recipe, scene=args.scene, out=args.out, overrides=args.overrides,
                      observer=obs, overwrite=args.overwrite, rerun=False if args.no_rerun else None)
-    print_summary(res)
+    if not args.quiet:  # -q: only errors, and the verdict below (an error-like outcome)
+        print_summary(res)
     line = verdict_line(res.assessment)
     if line is None:
         return 0
@@ -146,7 +148,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, help="output folder (default out/<recipe name>)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.add_argument("--no-rerun", action="store_true", help="do not write recording.rrd")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="print nothing but errors (and the final 'registration unreliable' line)")
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("validate", help="check a recipe and its scene without running",

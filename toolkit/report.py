@@ -121,7 +121,7 @@ def write_report(out_dir: Path, context: ReportContext) -> Path:
         f"(pairs beyond {values.get('cutoff_m', 10):g} m ignored), and errors against the truth.",
         "needs evaluate metrics with a reference cloud or truth")
 
-    page = _page(c, values, rows, figures, missing)
+    page = _page(c, values, rows, figures, missing, out_dir)
     path = out_dir / "report.html"
     path.write_text(page, encoding="utf-8")
     return path
@@ -280,7 +280,9 @@ def _title(c: ReportContext) -> str:
     return str(recipe_name or scene_name or "run")
 
 
-def _page(c: ReportContext, values: dict, rows: list[dict], figures, missing: list[str]) -> str:
+def _page(c: ReportContext, values: dict, rows: list[dict], figures, missing: list[str], out_dir: Path) -> str:
+    from toolkit.report_links import links_html
+
     name = c.title or _title(c)
     scene_line = (f"scene <code>{html.escape(str(c.scene.root))}</code> · CRS {html.escape(c.scene.crs)}"
                   if c.scene is not None else "no scene")
@@ -313,8 +315,7 @@ def _page(c: ReportContext, values: dict, rows: list[dict], figures, missing: li
                      "".join(f"<li>{html.escape(n)}</li>" for n in notes) + "</ul>")
     parts += ["<h2>Recipe (resolved)</h2>",
               f"<pre>{html.escape(c.recipe_text)}</pre>" if c.recipe_text else '<p class="missing">No recipe text.</p>',
-              ('<p class="foot">Full numbers: <a href="metrics.json">metrics.json</a> · per-segment transforms: '
-              '<a href="transforms.json">transforms.json</a> · interactive: <code>rerun recording.rrd</code></p>')]
+              links_html(out_dir)]
     return _TEMPLATE.replace("{title}", html.escape(f"crossview — {name}")).replace("{body}", "\n".join(parts))
 
 

@@ -21,7 +21,7 @@ from toolkit.types import Grid, Raster, Scene, SceneFiles, SparseModel
 # manifest section → key → SceneFiles field
 MANIFEST_KEYS: dict[str, dict[str, str]] = {
     "overview": {"dsm": "dsm", "ortho": "ortho", "footprints": "footprints", "osm": "osm",
-                 "labels": "labels", "cloud": "overview_cloud"},
+                 "labels": "labels", "cloud": "overview_cloud", "dem": "dem"},
     "street": {"cloud": "street_cloud", "sparse": "sparse", "gps": "gps"},
     "truth": {"lidar": "truth_lidar", "street_points": "truth_street_points",
               "street_labels": "truth_street_labels", "buildings": "truth_buildings",
@@ -67,7 +67,7 @@ def load_scene(path: str | Path) -> Scene:
                 continue
             if not isinstance(value, str):
                 raise SceneError(f"{manifest_path}: '{section}.{key}' must be a path string, got {value!r}")
-            p = (root / value).resolve()
+            p = (root / Path(value).expanduser()).resolve()  # relative to the scene folder, or absolute
             if not p.exists():
                 raise SceneError(f"{p}: file named by {section}.{key} in {manifest_path} not found")
             files[keys[key]] = p
@@ -95,7 +95,7 @@ def _mtime(p: Path) -> float:
 
 
 # Rasters in another CRS or on another grid are warped onto the scene grid with these kernels.
-RESAMPLING = {"dsm": "bilinear", "ortho": "bilinear", "labels": "nearest"}
+RESAMPLING = {"dsm": "bilinear", "ortho": "bilinear", "labels": "nearest", "dem": "bilinear"}
 GRID_SOURCES = ("dsm", "labels", "ortho")  # the first the scene names defines the scene grid
 
 
@@ -132,11 +132,12 @@ def _raster(path: Path, mtime: float, grid: Grid, resampling: str) -> Raster:
     own = read_header(path).grid
     if on_grid(own, grid):
         return read_raster(path)
-    log.info("%s: %s; resampled (%s) onto the scene grid, %s", path, _describe(own), resampling, _describe(grid))
+    log.info("%s: %s; resampled (%s) onto the scene grid, %s", path, describe_grid(own), resampling, describe_grid(grid))
     return warp_raster(path, grid, resampling)
 
 
-def _describe(grid: Grid) -> str:
+def describe_grid(grid: Grid) -> str:
+    """The grid in words, e.g. 745x612 px of 0.5m in EPSG:32617."""
     from toolkit.io.crs import axis_units, parse_crs
 
     unit = axis_units(parse_crs(grid.crs, grid.crs))[0]

@@ -16,7 +16,7 @@ from typing import Any, Iterable, Sequence
 from toolkit.errors import SceneError
 from toolkit.types import Scene
 
-RASTERS = ("dsm", "ortho", "labels")
+RASTERS = ("dsm", "ortho", "labels", "dem")
 CLOUDS = ("street_cloud", "overview_cloud", "truth_lidar")
 FOOTPRINTS = ("footprints", "osm", "truth_buildings")
 
@@ -44,7 +44,7 @@ def check_scene_files(scene: Scene, keys: Iterable[str], stages: Sequence[Any] =
     if any(k in RASTERS or k in ("footprints", "osm") for k in keys):  # both are read onto the scene grid
         _rasters_meet_the_grid(scene, [k for k in keys if k in RASTERS])
     if uses_gps(scene, stages):
-        _gps(scene)
+        check_gps(scene)
     for stage in stages:
         stage.check_scene(scene)
 
@@ -63,11 +63,13 @@ def gps_match(scene: Scene) -> GpsMatch:
     return GpsMatch(int((match_images(fixes.names, model.image_names) >= 0).sum()), len(fixes))
 
 
-def _gps(scene: Scene) -> None:
+def check_gps(scene: Scene) -> GpsMatch:
+    """How many GPS fixes name a COLMAP image; a one-line error when none does."""
     found = gps_match(scene)
     if found.matched == 0:
         raise SceneError(f"{scene.files.gps}: none of its {found.fixes} fixes names an image of the COLMAP "
                          f"model {scene.files.sparse} (matched by image name, then by file name)")
+    return found
 
 
 def _raster_header(path: Path) -> None:

@@ -101,5 +101,16 @@ def residuals(model: SparseModel, R: np.ndarray, t: np.ndarray, X: np.ndarray) -
     return ob[:, 2:4] - uv
 
 
+def point_errors_px(model: SparseModel, res: np.ndarray) -> np.ndarray:
+    """(P,) mean reprojection error (px) of each 3D point over its observations, as COLMAP's ERROR
+    column holds it, from ``res`` = ``residuals(model, ...)``; -1 (COLMAP's "no error") when no image
+    observes the point."""
+    pt = model.observations[:, 1].astype(np.int64)
+    n_points = len(model.points3d)
+    count = np.bincount(pt, minlength=n_points)
+    total = np.bincount(pt, weights=np.linalg.norm(res, axis=1), minlength=n_points)
+    return np.where(count > 0, total / np.maximum(count, 1), -1.0)
+
+
 def rms_px(res: np.ndarray) -> float:
     return float(np.sqrt(np.mean(res ** 2))) if len(res) else 0.0

@@ -78,7 +78,7 @@ def read_model(path: str | Path) -> SparseModel:
 
 def _assemble(path, cameras, images, points) -> SparseModel:
     ids, cam_ids, names, qs, ts, obs = [], [], [], [], [], []
-    pid, pxyz, prgb = points
+    pid, pxyz, prgb, perr = points
     index_of_point = {int(p): i for i, p in enumerate(pid)}
     for k, (iid, q, t, cid, name, xys, p3d) in enumerate(images):
         if cid not in cameras:
@@ -100,6 +100,7 @@ def _assemble(path, cameras, images, points) -> SparseModel:
         points3d_ids=np.asarray(pid, dtype=np.int64), points3d=np.asarray(pxyz, np.float64).reshape(-1, 3),
         points3d_rgb=np.asarray(prgb, np.uint8).reshape(-1, 3), observations=observations,
         qvec=np.array(qs, dtype=np.float64).reshape(-1, 4),
+        points3d_error_px=np.asarray(perr, np.float64).reshape(-1),
     )
 
 
@@ -153,7 +154,8 @@ def _read_points_txt(path: Path):
     ids = np.array([int(ln.split(maxsplit=1)[0]) for ln in lines], dtype=np.int64)
     xyz = np.array([ln.split()[1:4] for ln in lines], dtype=np.float64).reshape(-1, 3)
     rgb = np.array([ln.split()[4:7] for ln in lines], dtype=np.int64).reshape(-1, 3)
-    return ids, xyz, rgb
+    error = np.array([ln.split()[7] for ln in lines], dtype=np.float64)
+    return ids, xyz, rgb, error
 
 
 def _read_cameras_bin(path: Path) -> dict[int, Camera]:
@@ -192,13 +194,14 @@ def _read_points_bin(path: Path):
     buf = path.read_bytes()
     (n,), off = struct.unpack_from("<Q", buf), 8
     ids, xyz, rgb = np.empty(n, np.int64), np.empty((n, 3)), np.empty((n, 3), np.uint8)
+    error = np.empty(n)
     for i in range(n):
         ids[i] = struct.unpack_from("<Q", buf, off)[0]
         xyz[i] = np.frombuffer(buf, "<f8", 3, off + 8)
         rgb[i] = np.frombuffer(buf, "u1", 3, off + 32)
-        (k,) = struct.unpack_from("<Q", buf, off + 43)
+        (error[i], k) = struct.unpack_from("<dQ", buf, off + 35)
         off += 51 + 8 * k
-    return ids, xyz, rgb
+    return ids, xyz, rgb, error
 
 
 # --- writing ----------------------------------------------------------------------------------
@@ -265,13 +268,21 @@ def _write_txt(model: SparseModel, path: Path) -> None:
     n_pt = len(xyz)
     head = _interleave(n_pt, map(str, np.asarray(model.points3d_ids).tolist()),
                        *(map(repr, xyz[:, d].tolist()) for d in range(3)),
-                       *(map(str, rgb[:, d].tolist()) for d in range(3)), ["0.0"] * n_pt)
+                       *(map(str, rgb[:, d].tolist()) for d in range(3)), map(repr, _errors(model).tolist()))
     track = list(map(str, tr.track.ravel().tolist()))
     starts = (2 * tr.pt_start).tolist()
     with open(path / "points3D.txt", "w") as fh:
         fh.write("# POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n")
         fh.writelines(f"{' '.join(head[8 * i:8 * i + 8])} {' '.join(track[starts[i]:starts[i + 1]])}\n"
                       for i in range(n_pt))
+
+
+def _errors(model: SparseModel) -> np.ndarray:
+    """(P,) the ERROR column: each point's mean reprojection error (px), 0 when unknown."""
+    n = len(model.points3d_ids)
+    if model.points3d_error_px is None or len(model.points3d_error_px) != n:
+        return np.zeros(n)
+    return np.asarray(model.points3d_error_px, np.float64)
 
 
 _POINT2D = np.dtype([("x", "<f8"), ("y", "<f8"), ("id", "<i8")])
@@ -299,6 +310,7 @@ def _write_bin(model: SparseModel, path: Path) -> None:
             fh.write(rec[tr.img_start[k]:tr.img_start[k + 1]].tobytes())
     head = np.zeros(len(model.points3d_ids), _POINT_HEAD)
     head["id"], head["xyz"], head["rgb"] = model.points3d_ids, model.points3d, model.points3d_rgb
+    head["error"] = _errors(model)
     head["n"] = np.diff(tr.pt_start)
     head_bytes, track_bytes = head.tobytes(), tr.track.astype("<i4").tobytes()
     hs, ts = _POINT_HEAD.itemsize, 8  # one track element: two int32
@@ -309,10 +321,12 @@ def _write_bin(model: SparseModel, path: Path) -> None:
                           for i in range(len(head))))
 
 
-def replace_poses(model: SparseModel, R: np.ndarray, t: np.ndarray,
-                  points3d: np.ndarray | None = None) -> SparseModel:
-    """A copy of ``model`` with new world-to-camera poses (and optionally 3D points)."""
+def replace_poses(model: SparseModel, R: np.ndarray, t: np.ndarray, points3d: np.ndarray | None = None,
+                  points3d_error_px: np.ndarray | None = None) -> SparseModel:
+    """A copy of ``model`` with new world-to-camera poses (and optionally 3D points); the points'
+    reprojection errors are ``points3d_error_px`` (None: unknown, the old ones no longer hold)."""
     from dataclasses import replace
 
     return replace(model, R=np.asarray(R, np.float64), t=np.asarray(t, np.float64), qvec=None,
-                   points3d=model.points3d if points3d is None else np.asarray(points3d, np.float64))
+                   points3d=model.points3d if points3d is None else np.asarray(points3d, np.float64),
+                   points3d_error_px=points3d_error_px)

@@ -105,6 +105,18 @@ def check_footprints(path: str | Path, target_crs: str) -> None:
         _ogr_layer(path)
 
 
+def footprints_crs(path: str | Path) -> str:
+    """The CRS a footprint file declares: a GeoJSON's ``crs`` member (lon/lat without one, as RFC
+    7946 says), a GeoPackage or Shapefile layer's CRS, lon/lat for OSM."""
+    path = Path(path)
+    fmt = footprint_format(path)
+    if fmt == "geojson":
+        return _read_geojson(path)[3]
+    if fmt == "ogr":
+        return _ogr_layer(path)[1]
+    return LONLAT
+
+
 # --- GeoJSON ------------------------------------------------------------------------------------
 def _read_geojson(path: Path) -> tuple[list, list[OsmKey], list[dict], str, list[str]]:
     try:
