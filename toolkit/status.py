@@ -57,10 +57,11 @@ class StatusRule:
     unreliable where its limit says, and several half-bad figures together do too.
     """
 
-    min_confidence: float = 0.5
+    min_confidence: float = 0.4
     # hard limits
     min_registered_point_share: float = 0.3
-    min_facade_support_share: float = 0.3
+    min_facade_support_share: float = 0.4
+    max_facade_distance_median_m: float = 1.2
     max_neighbour_disagree_share: float = 0.5
     max_outside_grid_share: float = 0.5
     gps_sigma_factor: float = 3.0       # GPS tolerance = max(gps_sigma_factor · σ, gps_min_tolerance_m)
@@ -71,6 +72,7 @@ class StatusRule:
     matched_share: Ramp = Ramp(good=0.4, bad=0.0)
     match_confidence_mean: Ramp = Ramp(good=0.4, bad=0.0)
     facade_support_share: Ramp = Ramp(good=0.6, bad=0.0)
+    facade_distance_median_m: Ramp = Ramp(good=0.6, bad=1.8)
     neighbour_disagree_share: Ramp = Ramp(good=0.1, bad=0.9)
     outside_grid_share: Ramp = Ramp(good=0.1, bad=0.9)
     camera_spread_p95_m: Ramp = Ramp(good=3.0, bad=30.0)
@@ -135,6 +137,7 @@ class Verdict:
 
 
 SCORED = ("registered_point_share", "matched_share", "match_confidence_mean", "facade_support_share",
+          "facade_distance_median_m",
           "neighbour_disagree_share", "outside_grid_share", "camera_spread_p95_m", "ba_rms_after_px",
           "gps_residual_ratio")
 
@@ -157,6 +160,14 @@ def _hard_facades(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
         return None
     return (f"only {s:.0%} of the façade points lie within {f.get('facade_radius_m', 0):g} m of an over-view "
             f"outline (at least {rule.min_facade_support_share:.0%} expected): façades are off the buildings")
+
+
+def _hard_facade_distance(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
+    d = f.get("facade_distance_median_m")
+    if d is None or d <= rule.max_facade_distance_median_m:
+        return None
+    return (f"the registered façades lie {d:.1f} m from the over-view outlines (median; at most "
+            f"{rule.max_facade_distance_median_m:g} m expected): the registration is off by metres")
 
 
 def _hard_outside(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
@@ -184,6 +195,7 @@ def _hard_registered(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
 
 # figure → its hard limit, most important first: GPS is direct evidence, façades off every outline nearly so
 HARD_CHECKS = {"gps_residual_ratio": _hard_gps, "facade_support_share": _hard_facades,
+               "facade_distance_median_m": _hard_facade_distance,
                "outside_grid_share": _hard_outside, "neighbour_disagree_share": _hard_neighbours,
                "registered_point_share": _hard_registered}
 
@@ -196,6 +208,8 @@ SOFT_REASONS = {
                                          f"{f.get('facade_radius_m', 0):g} m of an over-view outline",
     "neighbour_disagree_share": lambda r, f: f"{f['neighbour_disagree_share']:.0%} of neighbouring segments placed "
                                              f"more than {f.get('neighbour_tol_m', 0):g} m apart",
+    "facade_distance_median_m": lambda r, f: f"registered façades {f['facade_distance_median_m']:.2f} m from the "
+                                             "over-view outlines (median)",
     "outside_grid_share": lambda r, f: f"{f['outside_grid_share']:.0%} of the registered points outside the "
                                        "over-view data",
     "camera_spread_p95_m": lambda r, f: f"blended transforms spread {f['camera_spread_p95_m']:.1f} m at the "
