@@ -41,6 +41,18 @@ def city_scene(city: Path = DEN_HAAG, seed: int = 0) -> Path:
     return root
 
 
+def kabsch_error(src, dst):
+    """Per-point 3D error of the best rigid fit (Kabsch, no scale) of ``src`` onto ``dst`` (N,3): the
+    bar any non-rigid registration must beat."""
+    import numpy as np
+
+    a, b = src.mean(0), dst.mean(0)
+    U, _, Vt = np.linalg.svd((src - a).T @ (dst - b))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return np.linalg.norm((src - a) @ R.T + b - dst, axis=1)
+
+
 def peak_rss_mb(children: bool = False) -> float:
     who = resource.RUSAGE_CHILDREN if children else resource.RUSAGE_SELF
     return resource.getrusage(who).ru_maxrss / 1024.0

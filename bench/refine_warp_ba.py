@@ -34,6 +34,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from _common import kabsch_error
 from toolkit.observe import NullObserver
 from toolkit.recipe import load_recipe
 from toolkit.runner import build
@@ -117,14 +118,6 @@ def recipe_params(recipe_path: Path, step: str, stage) -> dict:
         if spec.name == step and spec.use == stage.key():
             return dict(spec.params)
     return {}
-
-
-def kabsch_error(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    a, b = src.mean(0), dst.mean(0)
-    U, _, Vt = np.linalg.svd((src - a).T @ (dst - b))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    return np.linalg.norm((src - a) @ R.T + b - dst, axis=1)
 
 
 def border_mask(street, transforms, scene, border_m: float) -> np.ndarray:

@@ -126,9 +126,10 @@ def _lod_minor(g) -> float:
 def _horizontal_crs(path: Path, ref: str) -> str:
     from pyproj import CRS
 
-    code = ref.rstrip("/").split("/")[-1] if ref else ""
+    # https://www.opengis.net/def/crs/EPSG/0/7415 (CityJSON ≥ 1.1) or urn:ogc:def:crs:EPSG::7415 (1.0)
+    code = ref.rstrip("/").replace(":", "/").split("/")[-1] if ref else ""
     if not code.isdigit():
-        raise SceneError(f"{path}: CityJSON metadata.referenceSystem {ref!r} is not an EPSG URL")
+        raise SceneError(f"{path}: CityJSON metadata.referenceSystem {ref!r} is not an EPSG URL or URN")
     crs = CRS.from_epsg(int(code))
     if crs.is_compound:
         crs = crs.sub_crs_list[0]

@@ -2,8 +2,9 @@
 
 Each camera k gets a similarity (rotation D_k, scale s_k, drifted centre c'_k). Rotation errors
 accumulate as a random walk of small world-frame increments (heading about up, pitch about the
-vehicle's lateral axis, roll about its forward axis), the scale as a trend plus a random walk, and
-the drifted trajectory integrates the drifted steps: c'_{k+1} = c'_k + s_k D_k (c_{k+1} - c_k).
+vehicle's lateral axis, roll about its forward axis), the scale as a trend (random sign unless
+``scale_drift_signed``) plus a random walk, and the drifted trajectory integrates the drifted
+steps: c'_{k+1} = c'_k + s_k D_k (c_{k+1} - c_k).
 A point captured by camera k moves as x' = c'_k + s_k D_k (x - c_k); then the whole street frame
 is rotated (any yaw, tilt ≤ max_tilt_deg) and translated: x_street = G_R x' + G_t.
 """
@@ -85,7 +86,8 @@ def make_drift(
         acc = steps[k] @ acc
         D[k] = acc
     total = max(arclength[-1], 1e-9)
-    trend = cfg.scale_drift * rng.choice([-1.0, 1.0]) * arclength / total
+    sign = rng.choice([-1.0, 1.0])  # drawn either way: the other draws stay the same
+    trend = cfg.scale_drift * (1.0 if cfg.scale_drift_signed else sign) * arclength / total
     scale = np.exp(trend + np.cumsum(rng.normal(0, 1, n) * cfg.scale_walk * np.sqrt(ds / 100.0)))
     scale /= scale[0]
     steps_xyz = np.diff(centres, axis=0)

@@ -87,8 +87,9 @@ def build_scene(world: World, cfg: SynthConfig, seed: int, out: Path, name: str,
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = _prepare(out)
     with timed("route"):
-        centreline = plan_route(world, cfg, _rng(seed, "route"))
-        track = make_track(centreline, world.terrain, cfg, _rng(seed, "route"), closed=cfg.route_closed)
+        # a real city that cannot host the asked loop may get an open route instead (plan_route warns)
+        centreline, closed = plan_route(world, cfg, _rng(seed, "route"))
+        track = make_track(centreline, world.terrain, cfg, _rng(seed, "route"), closed=closed)
     with timed("over-view products"):
         ov = overview_writer.write_overview(
             world, cfg, tmp, {s: _rng(seed, s) for s in ("dsm", "ortho", "labels", "footprints")}
@@ -119,6 +120,7 @@ def build_scene(world: World, cfg: SynthConfig, seed: int, out: Path, name: str,
         "street_points": st.n_points,
         "cameras": len(track),
         "route_length_m": round(float(track.arclength[-1]), 2),
+        "route_closed": bool(track.closed),
         "buildings": len(world.buildings),
         "overview_size_px": [ov.grid.width, ov.grid.height],
         "sparse_points": st.n_sparse,

@@ -17,6 +17,7 @@ from toolkit.errors import CrossviewError
 CELL_M = 1.0
 MIN_CLEARANCE_M = 4.0
 SPUR_M = 25.0
+ROAD_PAD_M = 30.0  # with road surfaces: also drive this far outside the buildings' bounding box
 
 
 def open_space_graph(world, drivable=None) -> nx.Graph:
@@ -27,6 +28,8 @@ def open_space_graph(world, drivable=None) -> nx.Graph:
     from skimage.morphology import skeletonize
 
     xmin, ymin, xmax, ymax = world.bounds
+    if drivable is not None and not drivable.is_empty:  # roads round the block lie outside its box
+        xmin, ymin, xmax, ymax = xmin - ROAD_PAD_M, ymin - ROAD_PAD_M, xmax + ROAD_PAD_M, ymax + ROAD_PAD_M
     w, h = int(np.ceil((xmax - xmin) / CELL_M)), int(np.ceil((ymax - ymin) / CELL_M))
     tr = Affine(CELL_M, 0, xmin, 0, -CELL_M, ymax)
     footprints = [b.footprint for b in world.buildings if not b.footprint.is_empty]
@@ -37,11 +40,13 @@ def open_space_graph(world, drivable=None) -> nx.Graph:
     if drivable is not None and not drivable.is_empty:
         road = rasterize([(drivable, 1)], out_shape=(h, w), transform=tr, fill=0, dtype="uint8") > 0
         free = road & (clearance >= MIN_CLEARANCE_M / 2)
+        opening = 1  # keeps narrow canal-side streets (Delft), which the surfaces already delimit
     else:
         area = unary_union(footprints).convex_hull.buffer(-5.0)
         inside = rasterize([(area, 1)], out_shape=(h, w), transform=tr, fill=0, dtype="uint8") > 0
         free = inside & (clearance >= MIN_CLEARANCE_M)
-    free = ndi.binary_opening(free, iterations=2)
+        opening = 2
+    free = ndi.binary_opening(free, iterations=opening)
     skel = skeletonize(free)
     g = _pixel_graph(skel, clearance, xmin, ymax)
     _prune_spurs(g)

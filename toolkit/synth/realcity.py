@@ -32,10 +32,15 @@ def load_city(path: Path, cfg: SynthConfig, rng: np.random.Generator) -> World:
     raise SceneError(f"{path}: unknown city format (use CityJSON .json, .osm or .osm.pbf)")
 
 
-def _crop_box(centres: np.ndarray, cfg: SynthConfig):
+def _crop_box(centres: np.ndarray, cfg: SynthConfig, to_local=None):
+    """The ``city_crop_m`` square around ``city_crop_centre_lonlat`` (``to_local``: lon/lat (n,2) →
+    local metres) or else around the buildings' median centre; None when not cropping."""
     if cfg.city_crop_m <= 0:
         return None
-    c = np.median(centres, axis=0)
+    if cfg.city_crop_centre_lonlat is not None and to_local is not None:
+        c = to_local(np.array([cfg.city_crop_centre_lonlat], np.float64))[0]
+    else:
+        c = np.median(centres, axis=0)
     h = cfg.city_crop_m / 2
     return box(c[0] - h, c[1] - h, c[0] + h, c[1] + h)
 
@@ -54,7 +59,8 @@ def _finish(
     rng,
 ) -> World:
     if not buildings:
-        raise SceneError(f"{name}: no buildings left (check city_crop_m)")
+        where = f" around {cfg.city_crop_centre_lonlat}" if cfg.city_crop_centre_lonlat is not None else ""
+        raise SceneError(f"{name}: no buildings left (check city_crop_m{where})")
     fps = unary_union([b.footprint for b in buildings])
     bounds = tuple(float(v) for v in fps.bounds)
     world = World(
@@ -99,6 +105,13 @@ def _finish(
             np.int64
         )
     return world
+
+
+def _lonlat_to_local(crs: str, origin: np.ndarray):
+    from pyproj import Transformer
+
+    tr = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
+    return lambda ll: np.column_stack(tr.transform(ll[:, 0], ll[:, 1])) - origin[:2]
 
 
 def _skirt(bounds, ground: TriMesh, margin_m: float = 80.0) -> TriMesh:
@@ -150,7 +163,7 @@ def _from_cityjson(path: Path, cfg: SynthConfig, rng) -> World:
         raise SceneError(f"{path}: no building footprints (GroundSurface) found")
     cents = np.array([np.asarray(g.centroid.coords[0]) for g in fps.values()])
     origin = np.floor(cents.min(0) / 100) * 100
-    crop = _crop_box(cents - origin, cfg)
+    crop = _crop_box(cents - origin, cfg, _lonlat_to_local(m.crs, origin))
     facade, roof = _colors(rng, len(m.building_keys))
     buildings, meshes = [], []
     tri_b = {
@@ -252,12 +265,16 @@ def _from_osm(path: Path, cfg: SynthConfig, rng) -> World:
         polys.append(g)
         heights.append(max(float(height), 3.0))
     cents = np.array([np.asarray(g.centroid.coords[0]) for g in polys])
-    crop = _crop_box(cents, cfg)
+    crop = _crop_box(cents, cfg, to_local)
     slope = cfg.terrain_slope_pct / 100 * rng.uniform(0.3, 1.0)
     a = rng.uniform(0, 2 * np.pi)
-    terrain = plane_terrain(
-        cfg.ground_height_m, slope * np.cos(a), slope * np.sin(a), cfg.terrain_undulation_m, rng
-    )
+    gx, gy = slope * np.cos(a), slope * np.sin(a)
+    z0 = cfg.ground_height_m
+    if crop is not None and cfg.city_crop_centre_lonlat is not None:
+        # a crop far from the file's south-west corner (a village of a country): ground_height_m there
+        cx, cy = np.asarray(crop.centroid.coords[0])
+        z0 -= gx * cx + gy * cy
+    terrain = plane_terrain(z0, gx, gy, cfg.terrain_undulation_m, rng)
     facade, roof = _colors(rng, len(polys))
     buildings, meshes = [], []
     for i, (g, h) in enumerate(zip(polys, heights)):

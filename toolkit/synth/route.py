@@ -25,16 +25,17 @@ class Track:
         return len(self.centres)
 
 
-def plan_route(world, cfg: SynthConfig, rng: np.random.Generator) -> np.ndarray:
-    """Centreline polyline of the route: along the streets when the world has them, else through
-    the open space between buildings."""
+def plan_route(world, cfg: SynthConfig, rng: np.random.Generator) -> tuple[np.ndarray, bool]:
+    """Centreline polyline of the route and whether it is closed: along the streets when the world
+    has them, else through the open space between buildings. A real city that cannot host the asked
+    route gets a shorter one (still closed if it can, else open), with a warning."""
     g = world.street_graph
     if g is None or g.number_of_edges() == 0:
         from toolkit.synth.openspace import open_space_graph
 
-        g = open_space_graph(world, cfg)
+        g = open_space_graph(world)
     try:
-        return route_on_graph(g, cfg, rng)
+        return route_on_graph(g, cfg, rng), cfg.route_closed
     except CrossviewError:
         if world.name == "procedural":
             raise
@@ -57,7 +58,7 @@ def plan_route(world, cfg: SynthConfig, rng: np.random.Generator) -> np.ndarray:
                 "closed" if closed else "open",
                 shorter.route_length_m,
             )
-            return line
+            return line, closed
     raise CrossviewError(
         f"synth: {world.name}: no route of even {0.3 * cfg.route_length_m:.0f} m through its streets"
     )
@@ -81,13 +82,49 @@ def route_on_graph(
         length = np.linalg.norm(np.diff(line, axis=0), axis=1).sum()
         score = abs(length - target) / target
         if cfg.route_closed:  # prefer round loops to thin out-and-back ones
-            x, y = line[:, 0], line[:, 1]
-            area = abs(0.5 * np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
-            score -= 0.3 * area / (length**2 / (4 * np.pi))
+            score -= 0.3 * _roundness(line, length)
         if score < best_score:
             best, best_score = line, score
+    if best is None and cfg.route_closed:
+        best = _cycle_route(g, target, centre)
     if best is None:
         raise CrossviewError(f"synth: no street route of about {target:.0f} m found; lower route_length_m")
+    return best
+
+
+def _roundness(line: np.ndarray, length: float) -> float:
+    """Enclosed area over that of a circle of the same perimeter (1: a circle, 0: out and back)."""
+    x, y = line[:, 0], line[:, 1]
+    area = abs(0.5 * np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+    return float(area / (length**2 / (4 * np.pi)))
+
+
+def _cycle_route(
+    g: nx.Graph, target: float, centre: np.ndarray, max_cycles: int = 50_000, max_edges: int = 40
+) -> np.ndarray | None:
+    """The roundest simple cycle of the graph within 10 % of ``target`` (nearer the centre breaks
+    ties), when random walks found none: sparse street graphs (villages, the open space of one
+    block) hold few loops, and a walk rarely closes on one of the right length."""
+    import itertools
+
+    pos = {n: np.asarray(g.nodes[n]["xy"], np.float64) for n in g.nodes}
+    extent = max(float(np.ptp(np.array(list(pos.values())), axis=0).max()), 1.0)
+    best, best_score = None, np.inf
+    for cyc in itertools.islice(nx.simple_cycles(g, length_bound=max_edges), max_cycles):
+        if len(cyc) < 3:
+            continue
+        length = sum(g.edges[a, b]["length"] for a, b in zip(cyc, cyc[1:] + cyc[:1]))
+        if abs(length - target) > 0.1 * target:
+            continue
+        line = path_polyline(g, [*cyc, cyc[0]])
+        middle = np.mean([pos[n] for n in cyc], axis=0)
+        score = (
+            abs(length - target) / target
+            - 0.3 * _roundness(line, length)
+            + 0.2 * np.linalg.norm(middle - centre) / extent
+        )
+        if score < best_score:
+            best, best_score = line, score
     return best
 
 
