@@ -36,7 +36,7 @@ def check_scene_files(scene: Scene, keys: Iterable[str], stages: Sequence[Any] =
         if key in RASTERS:
             _raster_header(path)
         elif key in CLOUDS:
-            _cloud_header(path)
+            _cloud_header(path, scene.crs)
         elif key in FOOTPRINTS:
             _footprints(path, scene.crs)
         elif key == "sparse":
@@ -103,7 +103,7 @@ def _footprints(path: Path, crs: str) -> None:
     check_footprints(path, crs)
 
 
-def _cloud_header(path: Path) -> None:
+def _cloud_header(path: Path, scene_crs: str) -> None:
     if path.stat().st_size == 0:
         raise SceneError(f"{path}: file is empty")
     suffix = path.suffix.lower()
@@ -124,8 +124,22 @@ def _cloud_header(path: Path) -> None:
             raise SceneError(f"{path}: cannot read LAS/LAZ header ({' '.join(str(exc).split())})") from exc
         if n == 0:
             raise SceneError(f"{path}: point cloud has no points")
+        from toolkit.io.crs import check_cloud_crs
+
+        check_cloud_crs(path, _las_crs(path), scene_crs)
     elif suffix != ".pcd":
         raise SceneError(f"{path}: unsupported point cloud format {suffix!r} (use .ply, .las, .laz, .pcd)")
+
+
+def _las_crs(path: Path):
+    """The CRS a LAS/LAZ header declares (laspy ``parse_crs``), None without one or when unreadable."""
+    import laspy
+
+    try:
+        with laspy.open(path) as reader:
+            return reader.header.parse_crs()
+    except Exception:  # an unreadable CRS record: the cloud is used without one, as scene init does
+        return None
 
 
 def _sparse(path: Path) -> None:

@@ -94,3 +94,41 @@ def utm_of_area(crs: Any) -> tuple[str, str] | None:
     lon, lat = (area.west + area.east) / 2, (area.south + area.north) / 2
     found = query_utm_crs_info(datum_name="WGS 84", area_of_interest=AreaOfInterest(lon, lat, lon, lat))
     return (f"{found[0].auth_name}:{found[0].code}", found[0].name) if found else None
+
+
+def horizontal_crs(crs: Any) -> Any:
+    """The horizontal part of a compound CRS (``EPSG:32617+5703`` → EPSG:32617); others as they are."""
+    if crs.is_compound:
+        return next((sub for sub in crs.sub_crs_list if not sub.is_vertical), crs)
+    return crs
+
+
+def crs_label(crs: Any) -> str:
+    """``AUTH:CODE (name)`` when pyproj finds a code, else the CRS name."""
+    auth = crs.to_authority(min_confidence=90)
+    if auth:
+        return f"{auth[0]}:{auth[1]} ({crs.name})"
+    subs = [sub.to_authority(min_confidence=90) for sub in crs.sub_crs_list] if crs.is_compound else [None]
+    if all(subs):  # a compound CRS without a code of its own: EPSG:32618+5703
+        return f"{subs[0][0]}:{'+'.join(code for _, code in subs)} ({crs.name})"
+    return repr(crs.name)
+
+
+def check_cloud_crs(path: object, cloud_crs: Any, scene_crs: str) -> None:
+    """A LAS/LAZ cloud that declares a CRS must declare the scene's (a vertical component ignored).
+
+    No CRS, a vertical-only CRS or an engineering (local) CRS passes: the coordinates are then an
+    arbitrary frame (SfM), which registration is for. A geographic or projected CRS other than the
+    scene's means the points are in another frame than the one the run will assume.
+    """
+    if cloud_crs is None:
+        return
+    cloud = horizontal_crs(cloud_crs)
+    if cloud.is_vertical or cloud.is_engineering or not (cloud.is_projected or cloud.is_geographic):
+        return
+    scene = parse_crs(scene_crs, scene_crs)
+    if cloud.equals(horizontal_crs(scene), ignore_axis_order=True):
+        return
+    raise SceneError(f"{path}: the cloud's header declares CRS {crs_label(cloud_crs)}, which contradicts the "
+                     f"scene CRS {scene_crs} ({scene.name}); reproject the cloud to {scene_crs}, or, if its "
+                     f"coordinates are an arbitrary SfM frame, remove its CRS VLR (the WKT or GeoTIFF keys)")
