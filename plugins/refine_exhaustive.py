@@ -28,6 +28,10 @@ offsets, label-map edges) average out over several buildings, and other building
 position along straight walls. With ``rotation_window_m`` > 0, each segment's rotation is then the
 mean of its route neighbours' (``toolkit.refine.rotation``), turned about its own footprint centre:
 a compact façade fixes its rotation weakly, and the ground it carries far from it follows that error.
+Before the neighbour passes, each segment gets a scale (``scale``, ``toolkit.refine.scale``): the
+ratio of its registered to its input distance from the segments captured near it along the route,
+within 1 ± ``scale.max_deviation``; the later passes search its footprint at that scale, so the
+transforms are similarities (monocular SfM drifts slowly in scale, which rigid segments cannot follow).
 """
 
 from __future__ import annotations
@@ -47,6 +51,7 @@ from toolkit.refine.ground3d import GroundParams, ground_step, height_source, pr
 from toolkit.refine.joint import JointParams, joint_transforms
 from toolkit.refine.propagate import footprint_window, predict_seed
 from toolkit.refine.route import neighbour_keys, route_positions
+from toolkit.refine.scale import ScaleConfig, route_scales, scaling_about
 from toolkit.refine.rotation import smoothed_rotations
 from toolkit.refine.search2d import AllOutlines, SearchParams, search_segments
 from toolkit.refine.segments import SegmentPoints, input_anchors
@@ -109,6 +114,8 @@ class Exhaustive(Stage):
         rotation_window_m: float = Field(
             0.0, ge=0, description="Set each rotation to the weighted mean rotation of segments "
                                    "within this route distance (m; route-aware only; 0: off)")
+        scale: ScaleConfig = Field(default_factory=ScaleConfig,
+                                   description="per-segment scale from the route neighbours (route-aware only)")
 
     @classmethod
     def scene_needs(cls, params) -> tuple[str, ...]:
@@ -149,15 +156,19 @@ class Exhaustive(Stage):
             matched.append((i, np.asarray(matches.T2d[i], np.float64), o, boxes[o], overview.ground_normal[o],
                             float(overview.ground_height[o]), float(matches.confidence[i])))
         self._register(matched, pts, overview, heights, sp, gp, st)
-        T = compose(street, st.T2d, st.R_z, st.t_z, st.centres, st.valid, cp.k, obs)
+        T = compose(street, st.T2d, st.R_z, st.t_z, st.centres, st.valid, cp.k, obs, scaling=st.scaling)
         carrier = np.asarray(street.carrier)
         st.points = np.bincount(carrier[carrier >= 0], minlength=S).astype(np.float64)
         valid = consistent(T, st.valid, street, cp, graphs, st.points * st.conf, st.keys, route_s=st.route_s)
         warn_rejected(street, st.valid, valid, obs)
         if p.propagate:
             T, valid = self._propagate(street, overview, graphs, pts, heights, sp, gp, cp, st, T, valid, obs)
+        if p.scale.max_deviation > 0 and np.isfinite(route_s).any():
+            self._set_scales(street, pts, st, T, valid)
         for _ in range(p.neighbour_passes):
             T, valid = self._neighbour_pass(street, overview, graphs, pts, heights, sp, gp, cp, st, T, valid, obs)
+        if p.scale.max_deviation > 0 and p.neighbour_passes and np.isfinite(route_s).any():
+            self._set_scales(street, pts, st, T, valid)     # again, from the better placed centres
         if (p.joint_window_m > 0 or p.rotation_window_m > 0) and np.isfinite(route_s).any():
             T = self._route_pass(street, overview, pts, heights, gp, cp, st, valid, obs)
         if not valid.any():
@@ -261,7 +272,7 @@ class Exhaustive(Stage):
             _, _, o_normal, o_height, conf = st.target[i]
             items.append((i, seed, None, box, o_normal, o_height, conf))
         self._register(items, pts, overview, heights, sp, gp, st)
-        T = compose(street, st.T2d, st.R_z, st.t_z, st.centres, before & st.valid, cp.k, obs)
+        T = compose(street, st.T2d, st.R_z, st.t_z, st.centres, before & st.valid, cp.k, obs, scaling=st.scaling)
         valid = consistent(T, before & st.valid, street, cp, graphs, st.points * st.conf, st.keys, route_s=st.route_s)
         warn_rejected(street, before, valid, obs)
         return T, valid
@@ -282,7 +293,8 @@ class Exhaustive(Stage):
         T2d, anchors = st.T2d, input_anchors(street)
         if p.joint_window_m > 0:
             T2d = joint_transforms(fps, T2d, st.route_s, anchors, overview.grid,
-                                   np.asarray(overview.label_image), jp, st.outlines)
+                                   np.asarray(overview.label_image), jp, st.outlines,
+                                   scale=pts.scale, pivots_xy=pts.pivots[:, :2])
         if p.rotation_window_m > 0:
             centres, sizes = np.zeros((len(street), 2)), np.zeros(len(street))
             for i in idx:
@@ -294,7 +306,19 @@ class Exhaustive(Stage):
             _, _, o_normal, o_height, _ = st.target[i] if st.target[i] is not None else (None, None, level, np.nan, 0)
             g = self._ground_step(i, T2d[i], pts, heights, o_normal, o_height, gp, st)
             st.T2d[i], st.R_z[i], st.t_z[i], st.centres[i] = T2d[i], g.R_z, g.t_z, g.centre
-        return compose(street, st.T2d, st.R_z, st.t_z, st.centres, valid, cp.k, obs)
+        return compose(street, st.T2d, st.R_z, st.t_z, st.centres, valid, cp.k, obs, scaling=st.scaling)
+
+    def _set_scales(self, street, pts, st, T, valid) -> None:
+        """Each segment's scale from its route neighbours' registered centres (``toolkit.refine.scale``);
+        from here on its points are scaled about its levelled centre."""
+        anchors = input_anchors(street)
+        placed = np.einsum("sab,sb->sa", T[:, :3, :3], anchors) + T[:, :3, 3]
+        lev_xy = np.asarray(street.centroids, np.float64).reshape(-1, 2)
+        found = route_scales(placed[:, :2], lev_xy, st.route_s, valid, st.points * st.conf, self.params.scale)
+        pivots = np.column_stack([lev_xy, np.nan_to_num(np.asarray(street.ground_z, np.float64), nan=0.0)])
+        pts.set_scales(found.scale, pivots)
+        st.ground.clear()
+        st.scaling = scaling_about(pivots, found.scale)
 
     def _propagate(self, street, overview, graphs, pts, heights, sp, gp, cp, st, T, valid, obs):
         """Register segments without a surviving match from their registered neighbours' transforms."""
@@ -320,7 +344,7 @@ class Exhaustive(Stage):
                 cand[i] = registered
             if not cand.any():
                 break
-            T = compose(street, st.T2d, st.R_z, st.t_z, st.centres, valid | cand, cp.k, obs)
+            T = compose(street, st.T2d, st.R_z, st.t_z, st.centres, valid | cand, cp.k, obs, scaling=st.scaling)
             # the newcomers must agree with the accepted segments, never the other way round
             new_valid = consistent(T, valid | cand, street, cp, graphs, st.points * st.conf, st.keys, protected=valid,
                                    route_s=st.route_s)
@@ -347,3 +371,4 @@ class _State:
         self.keys = np.zeros((S, 1))
         self.route_s = np.full(S, np.nan)
         self.outlines = None                     # search2d.AllOutlines of the over-view
+        self.scaling = np.repeat(np.eye(4)[None], S, axis=0)   # levelled-frame pre-maps (segment scales)

@@ -49,3 +49,10 @@ def column_bounds(values: np.ndarray, rows_per_block: int = 512) -> tuple[np.nda
         lo = np.minimum(lo, blocks.min(axis=0).reshape(-1, d).min(axis=0))
         hi = np.maximum(hi, blocks.max(axis=0).reshape(-1, d).max(axis=0))
     return lo, hi
+
+
+def weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
+    """The value at which the cumulative weight (values sorted) first reaches half the total."""
+    order = np.argsort(values, kind="stable")
+    cum = np.cumsum(np.asarray(weights, np.float64)[order])
+    return float(np.asarray(values)[order][np.searchsorted(cum, 0.5 * cum[-1])])

@@ -18,6 +18,7 @@ import numpy as np
 
 from toolkit.io.attributes import CHUNK_POINTS, CloudChunk, CloudSource, memory_cloud, open_cloud
 from toolkit.io.cloud_out import LasGrid, LasWriter, PlyWriter, ply_fields, segment_name
+from toolkit.refine.transforms import rotation_part
 
 
 @dataclass(frozen=True)
@@ -120,7 +121,7 @@ def registration_mover(registration, transforms, normals: tuple[str, str, str] |
 def _carrier_rotation(vectors: np.ndarray, segment: np.ndarray, transforms) -> np.ndarray:
     if transforms is None:
         return vectors
-    R = np.concatenate([np.asarray(transforms.T, np.float64)[:, :3, :3], np.eye(3)[None]])
+    R = np.concatenate([rotation_part(np.asarray(transforms.T, np.float64)[:, :3, :3]), np.eye(3)[None]])
     return np.einsum("nab,nb->na", R[np.where(segment >= 0, segment, len(R) - 1)], vectors)
 
 

@@ -43,10 +43,12 @@ def fill_heights(t_z: np.ndarray, valid: np.ndarray, centroids: np.ndarray, k: i
 
 
 def compose(street: StreetSegments, T2d: np.ndarray, R_z: np.ndarray, t_z: np.ndarray, centres: np.ndarray,
-            valid: np.ndarray, k: int, obs, levelled_override: dict[int, np.ndarray] | None = None) -> np.ndarray:
+            valid: np.ndarray, k: int, obs, levelled_override: dict[int, np.ndarray] | None = None,
+            scaling: np.ndarray | None = None) -> np.ndarray:
     """(S,4,4) INPUT street frame → scene transforms (Eq. 5 after the levelling).
 
     ``levelled_override``: complete levelled → scene transforms for some segments (used as given).
+    ``scaling``: (S,4,4) maps of the levelled frame applied before Eq. 5 (per-segment scale).
     """
     S = len(street)
     if S == 0:
@@ -54,7 +56,8 @@ def compose(street: StreetSegments, T2d: np.ndarray, R_z: np.ndarray, t_z: np.nd
     cent = np.asarray(street.centroids, np.float64).reshape(-1, 2)
     t_z = fill_heights(t_z, valid, cent, k, obs)
     override = levelled_override or {}
-    return np.stack([(override[i] if i in override else compose_eq5(T2d[i], R_z[i], t_z[i], centres[i]))
+    pre = [np.eye(4)] * S if scaling is None else scaling
+    return np.stack([(override[i] if i in override else compose_eq5(T2d[i], R_z[i], t_z[i], centres[i]) @ pre[i])
                      @ street.levelling for i in range(S)])
 
 

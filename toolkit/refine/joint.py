@@ -119,11 +119,15 @@ def joint_footprint(footprints: dict[int, np.ndarray], near: np.ndarray, ds_m: n
 
 def joint_transforms(footprints: dict[int, np.ndarray], T2d: np.ndarray, route_s: np.ndarray,
                      anchors_xy: np.ndarray, grid: Grid, label_image: np.ndarray,
-                     p: JointParams, outlines: AllOutlines | None = None) -> np.ndarray:
+                     p: JointParams, outlines: AllOutlines | None = None,
+                     scale: np.ndarray | None = None, pivots_xy: np.ndarray | None = None) -> np.ndarray:
     """(S,3,3) jointly re-estimated 2D transforms (levelled → scene) of the segments in ``footprints``
     (their levelled footprints); the others keep T2d. ``route_s``: (S,) metres along the route;
     ``anchors_xy``: (S,2) segment centres in the street frame (for the spatial gate); ``outlines``:
-    the over-view's outline field, shared with other searches (made here when not given)."""
+    the over-view's outline field, shared with other searches (made here when not given). ``scale``,
+    ``pivots_xy``: (S,) and (S,2): each footprint was scaled by scale[j] about pivots_xy[j]
+    (``toolkit.refine.scale``); segment i's window is then scaled as one body by scale[i] about its
+    pivot, so that the neighbours keep their distances at segment i's scale."""
     sp = SearchParams(p.rotation_deg, p.rotation_step_deg, 0.0, p.truncate_m, p.inlier_m, 0.0, True)
     idx = np.array(sorted(i for i in footprints if np.isfinite(route_s[i])), np.int64)
     out = np.array(T2d, np.float64, copy=True)
@@ -139,7 +143,9 @@ def joint_transforms(footprints: dict[int, np.ndarray], T2d: np.ndarray, route_s
     ds, within = route_neighbours(route_s[idx], anchors_xy[idx], p.window_m)
     searched, problems = [], []
     for row, i in enumerate(idx):
-        fp = joint_footprint(footprints, idx[within[row]], ds[row, within[row]], p, labels, thinned)
+        near = idx[within[row]]
+        parts = footprints if scale is None else _at_scale_of(i, near, footprints, scale, pivots_xy)
+        fp = joint_footprint(parts, near, ds[row, within[row]], p, labels, thinned)
         if len(fp) < 10:
             continue
         centre = column_means(fp @ T2d[i][:2, :2].T + T2d[i][:2, 2])
@@ -152,3 +158,12 @@ def joint_transforms(footprints: dict[int, np.ndarray], T2d: np.ndarray, route_s
     for i, res in zip(searched, results):
         out[i] = res.T2d
     return out
+
+
+def _at_scale_of(i: int, near: np.ndarray, footprints: dict[int, np.ndarray], scale: np.ndarray,
+                 pivots_xy: np.ndarray) -> dict[int, np.ndarray]:
+    """Footprints of ``near`` (each scaled by its own scale about its pivot) at segment i's scale about
+    i's pivot: c_i + s_i (c_j − c_i) + (s_i / s_j)(f_j − c_j)."""
+    ci, si = pivots_xy[i], scale[i]
+    return {int(j): ci + si * (pivots_xy[j] - ci) + (si / scale[j]) * (footprints[int(j)] - pivots_xy[j])
+            for j in near}

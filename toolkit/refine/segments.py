@@ -39,6 +39,18 @@ class SegmentPoints:
         self._ground_cache: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}
         self._facade_cache: dict[int, np.ndarray] = {}
         self._footprint_cache: dict[tuple[int, float, int], np.ndarray] = {}
+        self.scale, self.pivots = np.ones(S), np.zeros((S, 3))
+
+    def set_scales(self, scale: np.ndarray, pivots: np.ndarray) -> None:
+        """From now on segment i's points are scaled by scale[i] about pivots[i] (levelled frame)."""
+        self.scale, self.pivots = np.asarray(scale, np.float64), np.asarray(pivots, np.float64)
+        self._ground_cache.clear()
+        self._facade_cache.clear()
+        self._footprint_cache.clear()
+
+    def _scaled(self, i: int, lev: np.ndarray) -> np.ndarray:
+        s = self.scale[i]
+        return lev if s == 1.0 else self.pivots[i] + s * (lev - self.pivots[i])
 
     def facade_counts(self) -> np.ndarray:
         """(S,) number of façade points per segment."""
@@ -47,7 +59,7 @@ class SegmentPoints:
     def facade(self, i: int) -> np.ndarray:
         """(F,3) levelled façade points of segment i (cached: do not modify)."""
         if i not in self._facade_cache:
-            self._facade_cache[i] = self.street.level(self._points[self._facade[i]])
+            self._facade_cache[i] = self._scaled(i, self.street.level(self._points[self._facade[i]]))
         return self._facade_cache[i]
 
     def ground(self, i: int) -> tuple[np.ndarray, np.ndarray | None]:
@@ -57,7 +69,7 @@ class SegmentPoints:
             normals = None
             if self._normals is not None:
                 normals = np.asarray(self._normals[idx], np.float64) @ self._rotation_t
-            self._ground_cache[i] = (self.street.level(self._points[idx]), normals)
+            self._ground_cache[i] = (self._scaled(i, self.street.level(self._points[idx])), normals)
         return self._ground_cache[i]
 
     def footprint(self, i: int, cell_m: float, max_points: int, R_z: np.ndarray | None = None,

@@ -39,6 +39,12 @@ def apply(T: np.ndarray, p: np.ndarray) -> np.ndarray:
     return p @ T[:3, :3].T + T[:3, 3]
 
 
+def rotation_part(M: np.ndarray) -> np.ndarray:
+    """(...,3,3) similarity linear parts s·R → R (divided by the cube root of the determinant)."""
+    s = np.cbrt(np.linalg.det(M))
+    return M / np.where(s != 0, s, 1.0)[..., None, None]
+
+
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Smallest rotation taking unit vector a onto unit vector b (Rodrigues)."""
     a = np.asarray(a, float) / np.linalg.norm(a)

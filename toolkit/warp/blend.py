@@ -29,6 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from toolkit.refine.transforms import rotation_part
 from toolkit.warp.cells import CellBlocks, cell_blocks
 from toolkit.warp.index import SegmentIndex
 
@@ -215,4 +216,4 @@ def blend_rigid(points: np.ndarray, xy: np.ndarray, anchors: np.ndarray, T: np.n
     moved = np.einsum("mkab,mb->mka", T[cand, :3, :3], points) + (T[cand, :3, 3] - origin)
     pos = np.einsum("mk,mka->ma", w, moved)
     spread = np.sqrt(np.einsum("mk,mk->m", w, ((moved - pos[:, None]) ** 2).sum(axis=2)))
-    return pos + origin, average_rotations(T[cand, :3, :3], w), spread
+    return pos + origin, average_rotations(rotation_part(T[cand, :3, :3]), w), spread
