@@ -46,7 +46,7 @@ from scipy import ndimage
 from toolkit.forked import map_chunks_forked
 from toolkit.observe import DebugPoints2D
 from toolkit.refine.blas import single_threaded_blas
-from toolkit.refine.finish import ConsistencyParams, compose, consistent, warn_rejected
+from toolkit.refine.finish import ConsistencyParams, compose, consistent, warn_heights, warn_rejected
 from toolkit.refine.ground3d import GroundParams, ground_step, height_source, prepare_ground
 from toolkit.refine.joint import JointParams, joint_transforms
 from toolkit.refine.propagate import footprint_window, predict_seed
@@ -173,6 +173,7 @@ class Exhaustive(Stage):
             T = self._route_pass(street, overview, pts, heights, gp, cp, st, valid, obs)
         if not valid.any():
             obs.warn("no street segment could be registered (no match survived refinement)")
+        self._warn_heights(street, scene, heights, T, valid, st, obs)
         if obs.wants_debug and st.shown:
             xy = np.concatenate([s for _, s in st.shown])
             ids = np.concatenate([np.full(len(s), i) for i, s in st.shown])
@@ -307,6 +308,17 @@ class Exhaustive(Stage):
             g = self._ground_step(i, T2d[i], pts, heights, o_normal, o_height, gp, st)
             st.T2d[i], st.R_z[i], st.t_z[i], st.centres[i] = T2d[i], g.R_z, g.t_z, g.centre
         return compose(street, st.T2d, st.R_z, st.t_z, st.centres, valid, cp.k, obs, scaling=st.scaling)
+
+    @staticmethod
+    def _warn_heights(street, scene, heights, T, valid, st, obs) -> None:
+        """``warn_heights`` with the share of registered segments outside the height source."""
+        uncovered = None
+        if heights is not None:
+            anchors = input_anchors(street)
+            placed = np.einsum("sab,sb->sa", T[:, :3, :3], anchors) + T[:, :3, 3]
+            uncovered = ~np.isfinite(heights.sample(placed[:, :2]))
+        source = "DSM" if scene.has("dsm") else "terrain model" if scene.has("dem") else "over-view cloud"
+        warn_heights(st.t_z, valid, obs, uncovered, source)
 
     def _set_scales(self, street, pts, st, T, valid) -> None:
         """Each segment's scale from its route neighbours' registered centres (``toolkit.refine.scale``);

@@ -117,6 +117,10 @@ def write_outputs(out: Path, plan, results: dict[str, Any], timings: dict[str, f
     if cov is not None:
         metrics_values["coverage"] = cov
     metrics_values["crs"] = plan.scene.crs
+    metrics_values["street_scale"] = plan.scene.street_scale.as_dict()
+    metrics_values["heights"] = height_kind(plan.scene, results.get("overview"))
+    if results.get("transforms") is not None:
+        metrics_values["segment_scale"] = segment_scales(results["transforms"])
     metrics_values["warnings"] = list(warnings)
     dump_json(out / "metrics.json", metrics_values)
     # timings vary run to run: kept apart so metrics.json is reproducible byte for byte
@@ -156,3 +160,23 @@ def _write_report(out: Path, plan, results, timings, warnings, assessment) -> No
     ))
 
 
+
+
+def segment_scales(transforms) -> dict[str, float] | None:
+    """5th, 50th and 95th percentile of the valid segments' scales (metric frame → scene), or None."""
+    T = np.asarray(transforms.T, np.float64)[np.asarray(transforms.valid, bool)]
+    if len(T) == 0:
+        return None
+    s = np.cbrt(np.linalg.det(T[:, :3, :3]))
+    p5, p50, p95 = np.percentile(s, [5, 50, 95])
+    return {"p5": round(float(p5), 5), "median": round(float(p50), 5), "p95": round(float(p95), 5)}
+
+
+def height_kind(scene, overview) -> str:
+    """'absolute' when the registration had over-view heights (DSM, terrain model, over-view cloud or
+    the over-view segments' ground heights), else 'relative' (the street ground at 0 m)."""
+    if any(scene.has(k) for k in ("dsm", "dem", "overview_cloud")):
+        return "absolute"
+    if overview is not None and np.isfinite(np.asarray(overview.ground_height, np.float64)).any():
+        return "absolute"
+    return "relative"

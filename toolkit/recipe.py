@@ -16,7 +16,7 @@ import yaml
 from toolkit.errors import RecipeError
 from toolkit.stage import KINDS
 
-TOP_KEYS = ("recipe", "name", "base", "scene", "steps", "log", "outputs")
+TOP_KEYS = ("recipe", "name", "base", "scene", "street_scale", "steps", "log", "outputs")
 STEP_KEYS = ("use", "params")
 LOG_KEYS = ("rerun", "max_points", "progress", "report")
 OUTPUT_KEYS = ("ply",)  # outputs: {ply: false} skips registered.ply (registered.laz is always written)
@@ -39,6 +39,7 @@ class Recipe:
     steps: tuple[StepSpec, ...]
     log: dict[str, Any] = field(default_factory=dict)
     outputs: dict[str, Any] = field(default_factory=dict)
+    street_scale: Any = None  # 'auto', a number, or None (the scene's setting)
 
     def to_dict(self) -> dict[str, Any]:
         out = {
@@ -48,6 +49,8 @@ class Recipe:
         }
         if self.outputs:
             out["outputs"] = dict(self.outputs)
+        if self.street_scale is not None:
+            out["street_scale"] = self.street_scale
         return out
 
     def to_yaml(self) -> str:
@@ -203,7 +206,7 @@ def _validate(path: Path, data: dict[str, Any]) -> Recipe:
     if bad:
         raise RecipeError(f"{path}: log: unknown key {bad[0]!r} (allowed: {', '.join(LOG_KEYS)})")
     return Recipe(path=path, name=name, scene=scene, steps=tuple(steps), log=dict(log),
-                  outputs=_outputs(path, data.get("outputs")))
+                  outputs=_outputs(path, data.get("outputs")), street_scale=data.get("street_scale"))
 
 
 def _outputs(path: Path, outputs: Any) -> dict[str, Any]:

@@ -19,6 +19,7 @@ from toolkit.overlap import BufferedObserver, Prefetcher, independent
 from toolkit.recipe import Recipe, StepSpec, load_recipe
 from toolkit.registry import Registry, default_registry
 from toolkit.scene import FIELD_TO_MANIFEST, load_scene
+from toolkit.street_scale import resolve_street_scale
 from toolkit.stage import KIND_INPUTS, KIND_OPTIONAL, KIND_OUTPUT, KIND_OUTPUT_TYPE, Stage
 from toolkit.status import Assessment, assess
 from toolkit.threads import thread_budget
@@ -41,6 +42,7 @@ class RunResult:
     timings: dict[str, float]
     warnings: list[str] = field(default_factory=list)
     assessment: Assessment | None = None  # the truth-free self-assessment (toolkit.status)
+    scene: Scene | None = None            # the scene as run (its street scale resolved)
 
 
 def _step_label(spec: StepSpec) -> str:
@@ -86,7 +88,7 @@ def build(recipe: Recipe, scene: str | Path | None = None, registry: Registry | 
             raise RecipeError(f"{recipe.path}: {label} needs a steps.{kind} step before it")
         available.add(KIND_OUTPUT[spec.name])
         stages.append((spec, stage))
-    scene_obj = load_scene(resolve_scene_path(recipe, scene))
+    scene_obj = resolve_street_scale(load_scene(resolve_scene_path(recipe, scene)), recipe.street_scale, recipe.path)
     needed: list[str] = []
     for spec, stage in stages:
         for need in type(stage).scene_needs(stage.params):
@@ -231,7 +233,7 @@ def run_recipe(recipe_path: str | Path, scene: str | Path | None = None, out: st
             shutil.rmtree(out_dir)
         tmp.rename(out_dir)
         return RunResult(out_dir=out_dir, results=results, timings=timings, warnings=warnings,
-                         assessment=assessment)
+                         assessment=assessment, scene=plan.scene)
     except BaseException:
         if rerun_obs is not None:
             try:

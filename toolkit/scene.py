@@ -28,7 +28,7 @@ MANIFEST_KEYS: dict[str, dict[str, str]] = {
               "cameras": "truth_cameras"},
 }
 FIELD_TO_MANIFEST = {f: f"{sec}.{k}" for sec, keys in MANIFEST_KEYS.items() for k, f in keys.items()}
-TOP_KEYS = {"scene", "name", "crs", *MANIFEST_KEYS, "synth"}
+TOP_KEYS = {"scene", "name", "crs", "street_scale", *MANIFEST_KEYS, "synth"}
 log = logging.getLogger("crossview.scene")
 
 
@@ -152,6 +152,14 @@ def load_raster(scene: Scene, key: str, who: str = "") -> Raster:
     return _raster(p, _mtime(p), target.grid, RESAMPLING[key])
 
 
+def load_dem(scene: Scene, who: str = "") -> Raster:
+    """The terrain model on the scene grid, or, in a scene without one, on its own grid in the scene CRS."""
+    p = need(scene, "dem", who or "dem")
+    target = scene_grid(scene)
+    grid = target.grid if target is not None else _grid(p, _mtime(p), scene.crs)
+    return _raster(p, _mtime(p), grid, RESAMPLING["dem"])
+
+
 @functools.lru_cache(maxsize=4)
 def _points(path: Path, mtime: float) -> np.ndarray:
     from toolkit.io.cloud import read_points
@@ -162,9 +170,19 @@ def _points(path: Path, mtime: float) -> np.ndarray:
 
 
 def load_points(scene: Scene, key: str = "street_cloud", who: str = "") -> np.ndarray:
-    """(N,3) float64, read-only (shared between stages)."""
+    """(N,3) float64, read-only (shared between stages); the street cloud in metres (divided by the
+    scene's street scale)."""
     p = need(scene, key, who or key)
+    if key == "street_cloud" and scene.street_scale.value != 1.0:
+        return _scaled_points(p, _mtime(p), scene.street_scale.value)
     return _points(p, _mtime(p))
+
+
+@functools.lru_cache(maxsize=1)
+def _scaled_points(path: Path, mtime: float, scale: float) -> np.ndarray:
+    pts = _points(path, mtime) / scale
+    pts.setflags(write=False)
+    return pts
 
 
 @functools.lru_cache(maxsize=2)
@@ -175,8 +193,26 @@ def _model(path: Path, mtime: float) -> SparseModel:
 
 
 def load_sparse(scene: Scene, who: str = "") -> SparseModel:
+    """The COLMAP model in metres (camera positions and points divided by the street scale)."""
+    p = need(scene, "sparse", who or "sparse")
+    if scene.street_scale.value != 1.0:
+        return _scaled_model(p, _mtime(p), scene.street_scale.value)
+    return _model(p, _mtime(p))
+
+
+def read_sparse_raw(scene: Scene, who: str = "") -> SparseModel:
+    """The COLMAP model as written (the street frame's own units)."""
     p = need(scene, "sparse", who or "sparse")
     return _model(p, _mtime(p))
+
+
+@functools.lru_cache(maxsize=1)
+def _scaled_model(path: Path, mtime: float, scale: float) -> SparseModel:
+    from dataclasses import replace
+
+    model = _model(path, mtime)
+    return replace(model, t=np.asarray(model.t, np.float64) / scale,
+                   points3d=np.asarray(model.points3d, np.float64) / scale)
 
 
 def load_array(scene: Scene, key: str) -> np.ndarray:

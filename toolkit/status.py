@@ -64,6 +64,8 @@ class StatusRule:
     max_facade_distance_median_m: float = 1.2
     max_neighbour_disagree_share: float = 0.5
     max_outside_grid_share: float = 0.5
+    min_camera_height_m: float = 0.8    # street capture: handheld ~1.5 m, car roof ~2.5 m, mast ~4 m
+    max_camera_height_m: float = 6.0
     gps_sigma_factor: float = 3.0       # GPS tolerance = max(gps_sigma_factor · σ, gps_min_tolerance_m)
     gps_min_tolerance_m: float = 15.0
     # confidence ramps
@@ -185,6 +187,15 @@ def _hard_neighbours(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
             f"by their own transforms (median {f.get('neighbour_gap_median_m') or 0:.1f} m): wrong matches")
 
 
+def _hard_camera_height(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
+    h = f.get("camera_height_median_m")
+    if h is None or rule.min_camera_height_m <= h <= rule.max_camera_height_m:
+        return None
+    return (f"the cameras sit {h:.1f} m above the registered street ground (median; {rule.min_camera_height_m:g}-"
+            f"{rule.max_camera_height_m:g} m expected): the street scale is likely wrong (set street_scale, or "
+            f"give street/gps.csv)")
+
+
 def _hard_registered(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
     s = f.get("registered_point_share")
     if s is None or s >= rule.min_registered_point_share:
@@ -197,7 +208,7 @@ def _hard_registered(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
 HARD_CHECKS = {"gps_residual_ratio": _hard_gps, "facade_support_share": _hard_facades,
                "facade_distance_median_m": _hard_facade_distance,
                "outside_grid_share": _hard_outside, "neighbour_disagree_share": _hard_neighbours,
-               "registered_point_share": _hard_registered}
+               "registered_point_share": _hard_registered, "camera_height_median_m": _hard_camera_height}
 
 SOFT_REASONS = {
     "registered_point_share": lambda r, f: f"{f['registered_point_share']:.0%} of the street points on registered "
@@ -284,6 +295,7 @@ def measure(results: Mapping[str, Any], scene: Scene | None, params: AssessParam
                                   params.facade_cap_m))
     figures["outside_grid_share"] = outside_grid_share(registration, overview, params.max_points)
     figures.update(camera_spread(registration))
+    figures["camera_height_median_m"] = camera_height_m(registration, street, params.max_points)
     figures.update(bundle_adjustment(cameras))
     figures.update(gps_residuals(scene, registration, cameras))
     return {k: _round(v) for k, v in figures.items()}
@@ -415,6 +427,24 @@ def camera_spread(registration: Registration | None) -> dict[str, Any]:
     if spread is None or not len(spread):
         return {"camera_spread_median_m": None, "camera_spread_p95_m": None}
     return {"camera_spread_median_m": float(np.median(spread)), "camera_spread_p95_m": float(np.percentile(spread, 95))}
+
+
+def camera_height_m(registration: Registration | None, street: StreetSegments | None, max_points: int,
+                    radius_m: float = 5.0) -> float | None:
+    """Median height of the registered cameras above the registered street ground points within
+    ``radius_m`` of them horizontally (None without cameras or ground under them)."""
+    if registration is None or street is None or not len(registration.image_names):
+        return None
+    ground = np.flatnonzero(np.asarray(street.point_labels) == -1)
+    if len(ground) == 0 or len(registration.points) != len(street.point_labels):
+        return None
+    from scipy.spatial import cKDTree
+
+    g = np.asarray(registration.points)[_even_sample(ground, max_points)]
+    centres = -np.einsum("cji,cj->ci", registration.R, registration.t)
+    near = cKDTree(g[:, :2]).query_ball_point(centres[:, :2], radius_m)
+    heights = [c[2] - np.median(g[idx, 2]) for c, idx in zip(centres, near) if len(idx) >= 5]
+    return float(np.median(heights)) if heights else None
 
 
 def bundle_adjustment(cameras: AdjustedCameras | None) -> dict[str, Any]:

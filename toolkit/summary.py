@@ -53,6 +53,15 @@ def print_summary(res, console: Console | None = None) -> None:
     assessment = getattr(res, "assessment", None)
     if assessment is not None:
         _status_rows(table, assessment)
+    scale = getattr(getattr(res, "scene", None), "street_scale", None)
+    if scale is not None:
+        how = {"gps": "estimated from GPS", "assumed": "assumed (no GPS; set street_scale when not metric)",
+               "scene": "from scene.yaml", "recipe": "from the recipe"}[scale.source]
+        table.add_row("street scale (frame units per metre)", f"{scale.value:.4f} {how}")
+    from toolkit.outputs import height_kind
+
+    if res.scene is not None and height_kind(res.scene, res.results.get("overview")) == "relative":
+        table.add_row("heights", "relative: no DSM or terrain model, street ground at 0 m")
     for label, path, unit in SUMMARY_ROWS:
         v = lookup(values, path)
         if isinstance(v, (int, float)):

@@ -132,14 +132,33 @@ class SceneFiles:
 
 
 @dataclass(frozen=True)
+class StreetScale:
+    """value: street-frame units per metre; source: 'scene', 'recipe', 'gps' or 'assumed';
+    pairs: fix pairs behind a GPS estimate."""
+
+    value: float
+    source: str
+    pairs: int = 0
+
+    def as_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"value": round(self.value, 6), "source": self.source}
+        if self.source == "gps":
+            out["gps_pairs"] = self.pairs
+        return out
+
+
+
+@dataclass(frozen=True)
 class Scene:
-    """A validated scene folder. Loading is lazy: use ``toolkit.scene`` readers (cached)."""
+    """A validated scene folder. Loading is lazy: use ``toolkit.scene`` readers (cached).
+    street_scale: the street frame's units per metre (``toolkit.street_scale``; set by the runner)."""
 
     root: Path
     name: str
     crs: str
     files: SceneFiles
     manifest: Mapping[str, Any] = field(default_factory=dict)
+    street_scale: StreetScale = field(default_factory=lambda: StreetScale(1.0, "assumed"))
 
     def has(self, key: str) -> bool:
         return getattr(self.files, key) is not None

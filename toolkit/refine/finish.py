@@ -24,22 +24,37 @@ class ConsistencyParams:
     route_window_m: float = 150.0
 
 
-def fill_heights(t_z: np.ndarray, valid: np.ndarray, centroids: np.ndarray, k: int, obs) -> np.ndarray:
-    """Segments without a height offset take the median of their k nearest segments that have one."""
+def fill_heights(t_z: np.ndarray, valid: np.ndarray, centroids: np.ndarray, k: int,
+                 centres: np.ndarray) -> np.ndarray:
+    """Segments without a height offset take the median of their k nearest segments that have one;
+    when none has one (no height source), each segment's ground centre goes to 0 m (relative heights)."""
     t_z = t_z.copy()
     known = np.isfinite(t_z) & valid
     missing = np.flatnonzero(~np.isfinite(t_z))
     if len(missing) == 0:
         return t_z
     if not known.any():
-        if valid.any():
-            obs.warn("no over-view ground height for any segment: street ground left at its own height")
-        t_z[missing] = 0.0
+        t_z[missing] = -np.asarray(centres, np.float64)[missing, 2]
         return t_z
     src = np.flatnonzero(known)
     _, nn = cKDTree(centroids[src]).query(centroids[missing], k=min(k, len(src)))
     t_z[missing] = np.median(t_z[src][np.reshape(nn, (len(missing), -1))], axis=1)
     return t_z
+
+
+def warn_heights(t_z: np.ndarray, valid: np.ndarray, obs, uncovered: np.ndarray | None = None,
+                 source: str = "") -> None:
+    """One warning when no registered segment had an over-view ground height (relative heights), or
+    when the height ``source`` does not cover some registered segments (``uncovered``: (S,) bool)."""
+    n = int(valid.sum())
+    if n == 0:
+        return
+    if not (valid & np.isfinite(t_z)).any():
+        obs.warn("no over-view ground height (no DSM, terrain model or over-view cloud under the street): "
+                 "heights are relative, the street ground at 0 m")
+    elif uncovered is not None and (missing := int((valid & uncovered).sum())):
+        obs.warn(f"the {source or 'height source'} does not cover {missing} of {n} registered segments "
+                 f"({missing / n:.0%}): their heights follow their neighbours'")
 
 
 def compose(street: StreetSegments, T2d: np.ndarray, R_z: np.ndarray, t_z: np.ndarray, centres: np.ndarray,
@@ -54,7 +69,7 @@ def compose(street: StreetSegments, T2d: np.ndarray, R_z: np.ndarray, t_z: np.nd
     if S == 0:
         return np.zeros((0, 4, 4))
     cent = np.asarray(street.centroids, np.float64).reshape(-1, 2)
-    t_z = fill_heights(t_z, valid, cent, k, obs)
+    t_z = fill_heights(t_z, valid, cent, k, centres)
     override = levelled_override or {}
     pre = [np.eye(4)] * S if scaling is None else scaling
     return np.stack([(override[i] if i in override else compose_eq5(T2d[i], R_z[i], t_z[i], centres[i]) @ pre[i])
@@ -100,6 +115,7 @@ def finish(street: StreetSegments, T2d: np.ndarray, R_z: np.ndarray, t_z: np.nda
     """Compose, check consistency, package (input street frame → scene CRS)."""
     T = compose(street, T2d, R_z, t_z, centres, valid, cp.k, obs, levelled_override)
     new_valid = consistent(T, valid, street, cp, graphs)
+    warn_heights(t_z, new_valid, obs)
     warn_rejected(street, valid, new_valid, obs)
     if not new_valid.any():
         obs.warn("no street segment could be registered (no match survived refinement)")

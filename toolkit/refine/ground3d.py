@@ -4,8 +4,8 @@ The street ground normal of a segment (its ground points' normals within [15°] 
 median-filtered) is rotated onto the over-view ground normal around the segment (R_Z); then the
 height offset t_z is the robust difference between over-view ground heights and the street ground
 heights at the same places. Over-view heights come from the DSM when the scene has one, else from
-the over-view cloud (lowest point per grid cell), else from the over-view segments' ground heights
-(and a level ground). The robust difference is the mean of the 10–60 % slice of the sorted
+the terrain model (``overview.dem``, bare earth), else from the over-view cloud (lowest point per
+grid cell), else from the over-view segments' ground heights (and a level ground). The robust difference is the mean of the 10–60 % slice of the sorted
 differences, as the released code does for DSM road heights: cars, trees and building edges in
 the DSM only ever raise it.
 """
@@ -60,11 +60,12 @@ class HeightGrid:
 
 
 def height_source(scene: Scene, overview: OverviewSegments) -> HeightGrid | None:
-    """The DSM, else the over-view cloud rasterised (lowest z per cell) on the over-view grid."""
-    from toolkit.scene import load_points, load_raster
+    """The DSM, else the terrain model, else the over-view cloud rasterised (lowest z per cell) on
+    the over-view grid."""
+    from toolkit.scene import load_dem, load_points, load_raster
 
-    if scene.has("dsm"):
-        r = load_raster(scene, "dsm", "refine")
+    if scene.has("dsm") or scene.has("dem"):
+        r = load_raster(scene, "dsm", "refine") if scene.has("dsm") else load_dem(scene, "refine")
         h = r.data[0].astype(np.float64)
         h[r.nodata_mask] = np.nan
         return HeightGrid(h, r.grid)

@@ -56,7 +56,7 @@ def route_scales(placed_xy: np.ndarray, input_xy: np.ndarray, route_s: np.ndarra
     w = d_in * np.sqrt(np.outer(weight[idx], weight[idx]))
     usable = np.triu(d_in >= p.min_baseline_m, 1)
     lo, hi = 1.0 / (1.0 + p.max_deviation), 1.0 + p.max_deviation
-    for row, i in enumerate(idx):
+    for i in idx:
         inside = np.abs(route_s[idx] - route_s[i]) <= p.window_m
         pair = usable & inside[:, None] & inside[None, :]
         pairs[i] = int(pair.sum())

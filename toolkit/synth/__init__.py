@@ -22,12 +22,13 @@ ground, -2 clutter (trees, cars, poles) and outliers.
 - ``true_centres`` (C,3): true camera centres c_k, scene CRS.
 - ``drift_centres`` (C,3): drifted centres c'_k, scene CRS before the global transform.
 - ``drift_rotation`` (C,3,3) D_k and ``drift_scale`` (C,) s_k: the drift similarity of camera k.
-- ``global_rotation`` (3,3) G_R and ``global_translation`` (3,) G_t: the street frame.
+- ``global_rotation`` (3,3) G_R, ``global_translation`` (3,) G_t and ``global_scale`` k
+  (``street_scale``): the street frame.
 - ``camera_index`` (N,) int32: the camera k whose drift each street point carries.
 - ``sparse_point_index`` (P,) int64: street-point row of each COLMAP point (its id is row + 1).
 
 A street point with true position x and camera k is written as
-``x_street = G_R (c'_k + s_k D_k (x - c_k)) + G_t``; ``toolkit.synth.drift.Drift.apply`` / ``undo``
+``x_street = k (G_R (c'_k + s_k D_k (x - c_k)) + G_t)``; ``toolkit.synth.drift.Drift.apply`` / ``undo``
 implement both directions. ``street/sparse`` holds the drifted cameras in the street frame
 (``R = R_true D_k^T G_R^T``); its 2D observations are projections of the true points by the true
 cameras (``truth/cameras.txt``) plus Gaussian noise of ``pixel_noise_px`` per image axis.

@@ -102,6 +102,9 @@ class SynthConfig(BaseModel):
     scale_walk: float = Field(0.0005, ge=0, description="scale random walk per sqrt(100 m) (fraction)")
     max_tilt_deg: float = Field(30.0, ge=0, le=180, description="max tilt of the street frame's up axis (degrees)")
     global_offset_m: float = Field(500.0, ge=0, description="scale of the random street-frame translation (m)")
+    dem_gsd_m: float = Field(10.0, gt=0, description="cell size of overview/dem.tif, the bare-earth terrain model (m)")
+    dem_noise_m: float = Field(0.3, ge=0, description="noise sigma of the terrain model's heights (m)")
+    street_scale: float = Field(1.0, ge=0.01, le=100, description="scale of the street frame: cloud, COLMAP points and camera positions (truth stays metric)")
 
     # --- COLMAP model and GPS ------------------------------------------------------------------
     sparse_points: int = Field(30_000, ge=0, description="street points observed in the COLMAP model")

@@ -6,7 +6,8 @@ vehicle's lateral axis, roll about its forward axis), the scale as a trend (rand
 ``scale_drift_signed``) plus a random walk, and the drifted trajectory integrates the drifted
 steps: c'_{k+1} = c'_k + s_k D_k (c_{k+1} - c_k).
 A point captured by camera k moves as x' = c'_k + s_k D_k (x - c_k); then the whole street frame
-is rotated (any yaw, tilt ≤ max_tilt_deg) and translated: x_street = G_R x' + G_t.
+is rotated (any yaw, tilt ≤ max_tilt_deg), translated and scaled by ``street_scale`` (a monocular
+model's unknown scale): x_street = k (G_R x' + G_t).
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ class Drift:
     drift_scale: np.ndarray  # (C,) s_k
     global_rotation: np.ndarray  # (3,3) G_R
     global_translation: np.ndarray  # (3,) G_t
+    global_scale: float = 1.0  # k: the street frame's unknown scale (street_scale)
 
     def apply(self, points: np.ndarray, camera: np.ndarray) -> np.ndarray:
         """True scene-CRS points → street frame, each with the drift of its capturing camera."""
@@ -34,11 +36,11 @@ class Drift:
         moved = self.drift_centres[camera] + self.drift_scale[camera, None] * np.einsum(
             "nij,nj->ni", self.drift_rotation[camera], d
         )
-        return moved @ self.global_rotation.T + self.global_translation
+        return self.global_scale * (moved @ self.global_rotation.T + self.global_translation)
 
     def undo(self, street: np.ndarray, camera: np.ndarray) -> np.ndarray:
         """Street-frame points → true scene-CRS points (the inverse of ``apply``)."""
-        moved = (street - self.global_translation) @ self.global_rotation
+        moved = (street / self.global_scale - self.global_translation) @ self.global_rotation
         d = np.einsum("nji,nj->ni", self.drift_rotation[camera], moved - self.drift_centres[camera])
         return self.true_centres[camera] + d / self.drift_scale[camera, None]
 
@@ -46,7 +48,7 @@ class Drift:
         """COLMAP world-to-camera poses (R (C,3,3), t (C,3)) of the drifted cameras in the street frame."""
         R_wc = np.transpose(R_c2w, (0, 2, 1))
         R = R_wc @ np.transpose(self.drift_rotation, (0, 2, 1)) @ self.global_rotation.T
-        centres = self.drift_centres @ self.global_rotation.T + self.global_translation
+        centres = self.global_scale * (self.drift_centres @ self.global_rotation.T + self.global_translation)
         return R, -np.einsum("cij,cj->ci", R, centres)
 
     def arrays(self) -> dict[str, np.ndarray]:
@@ -59,6 +61,7 @@ class Drift:
                 "drift_scale",
                 "global_rotation",
                 "global_translation",
+                "global_scale",
             )
         }
 
@@ -94,7 +97,7 @@ def make_drift(
     moved = scale[:-1, None] * np.einsum("nij,nj->ni", D[:-1], steps_xyz)
     drifted = centres[0] + np.concatenate([np.zeros((1, 3)), np.cumsum(moved, axis=0)])
     G_R, G_t = _global_transform(centres[0], cfg, rng)
-    return Drift(centres, drifted, D, scale, G_R, G_t)
+    return Drift(centres, drifted, D, scale, G_R, G_t, float(cfg.street_scale))
 
 
 def _global_transform(anchor: np.ndarray, cfg: SynthConfig, rng) -> tuple[np.ndarray, np.ndarray]:

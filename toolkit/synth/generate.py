@@ -59,7 +59,7 @@ def generate_from_city(path: Path, seed: int, out: Path, **overrides: Any) -> Pa
     )
 
 
-_STREAMS = ("city", "route", "capture", "drift", "sparse", "gps", "dsm", "ortho", "labels", "footprints")
+_STREAMS = ("city", "route", "capture", "drift", "sparse", "gps", "dsm", "ortho", "labels", "footprints", "dem")
 
 
 def _rng(seed: int, stream: str) -> np.random.Generator:
@@ -92,7 +92,7 @@ def build_scene(world: World, cfg: SynthConfig, seed: int, out: Path, name: str,
         track = make_track(centreline, world.terrain, cfg, _rng(seed, "route"), closed=closed)
     with timed("over-view products"):
         ov = overview_writer.write_overview(
-            world, cfg, tmp, {s: _rng(seed, s) for s in ("dsm", "ortho", "labels", "footprints")}
+            world, cfg, tmp, {s: _rng(seed, s) for s in ("dsm", "ortho", "labels", "footprints", "dem")}
         )
     with timed("street capture and truth"):
         st = street_writer.write_street(
@@ -106,6 +106,7 @@ def build_scene(world: World, cfg: SynthConfig, seed: int, out: Path, name: str,
             "osm": "overview/map.osm",
             "labels": "overview/labels.tif",
             "cloud": "overview/cloud.ply",
+            "dem": "overview/dem.tif",
         },
         "street": {"cloud": "street/cloud.ply", "sparse": "street/sparse", "gps": "street/gps.csv"},
         "truth": {

@@ -1,4 +1,4 @@
-"""Write the over-view products of a world: dsm.tif, ortho.tif, labels.tif, cloud.ply,
+"""Write the over-view products of a world: dsm.tif, ortho.tif, labels.tif, cloud.ply, dem.tif,
 footprints.geojson and map.osm (plus truth/buildings.geojson)."""
 
 from __future__ import annotations
@@ -51,6 +51,7 @@ def write_overview(world: World, cfg: SynthConfig, root: Path, rngs: dict) -> Ov
         labels = label_product(r, cfg, rngs["labels"])
     write_geotiff(root / "overview/labels.tif", labels, grid, nodata=LABEL_NODATA, band_names=("building",))
     _write_cloud(root / "overview/cloud.ply", dsm, ortho, grid, cfg.overview_cloud_step_px)
+    _write_dem(root / "overview/dem.tif", world, grid, cfg, rngs["dem"])
 
     feats = fp.osm_like(
         world.overview_buildings(),
@@ -68,6 +69,19 @@ def write_overview(world: World, cfg: SynthConfig, root: Path, rngs: dict) -> Ov
     )
     fp.write_geojson(root / "truth/buildings.geojson", truth, cfg.crs)
     return OverviewResult(grid, dsm, DSM_NODATA, cover, [f.geom for f in feats])
+
+
+def _write_dem(path: Path, world: World, grid: Grid, cfg: SynthConfig, rng: np.random.Generator) -> None:
+    """Bare-earth terrain at ``dem_gsd_m`` over the over-view grid's extent, with ``dem_noise_m`` noise."""
+    g = cfg.dem_gsd_m
+    _, _, e0, _, _, n1 = grid.transform
+    w = int(np.ceil(grid.width * grid.gsd_m / g))
+    h = int(np.ceil(grid.height * grid.gsd_m / g))
+    dem_grid = Grid((g, 0.0, e0, 0.0, -g, n1), w, h, grid.crs)
+    rows, cols = np.mgrid[0:h, 0:w]
+    xy = dem_grid.pixel_to_world(rows.ravel(), cols.ravel()) - world.origin[:2]
+    z = world.terrain(xy[:, 0], xy[:, 1]) + rng.normal(0.0, cfg.dem_noise_m, len(xy))
+    write_geotiff(path, z.reshape(h, w).astype(np.float32), dem_grid, band_names=("height",))
 
 
 def _write_cloud(path: Path, dsm: np.ndarray, ortho: np.ndarray, grid: Grid, step: int) -> None:

@@ -68,7 +68,7 @@ def write_street(world: World, track: Track, cfg: SynthConfig, root: Path, ov, r
         s_cam.append(ch.camera)
         lidar_parts.append(ch.surface + origin3)
         sel = slice(None, None, every)
-        prev_d.append(((street[sel] - drift.global_translation) @ drift.global_rotation)[:, :2])
+        prev_d.append(((street[sel] / drift.global_scale - drift.global_translation) @ drift.global_rotation)[:, :2])
         prev_t.append(scene_pts[sel, :2])
     n = s_true.rows
     finish_ply(s_cloud, root / "street/cloud.ply", with_colors=True)

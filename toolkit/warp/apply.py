@@ -166,4 +166,5 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Sc
         R = np.einsum("cab,cdb->cad", model.R, Rb)          # R_wc · R̄ᵀ
         t = -np.einsum("cab,cb->ca", R, pos)
     return Registration(points=moved, image_names=names, R=R, t=t, point_segment=anchors.astype(np.int64, copy=False),
-                        camera_spread_m=spread, warp=warp.with_source(pts, anchors))
+                        camera_spread_m=spread,
+                        warp=warp.with_source(pts, anchors).for_input_frame(scene.street_scale.value))

@@ -75,21 +75,34 @@ class PointWarp:
     weight_cell_m: float
     relative_distance: bool = False
     source: CarrierSource | None = None
+    street_scale: float = 1.0
+
+    def _metric(self, points: np.ndarray) -> np.ndarray:
+        return points if self.street_scale == 1.0 else np.asarray(points, np.float64) / self.street_scale
 
     def levelled_xy(self, points: np.ndarray) -> np.ndarray:
-        return levelled_xy(self, points)
+        return levelled_xy(self, self._metric(points))
 
     def maps(self, points: np.ndarray, carriers: np.ndarray, xy: np.ndarray | None = None) -> PointMaps:
-        """Each point's blended map (``toolkit.warp.blend.point_maps``)."""
+        """Each point's blended map (``toolkit.warp.blend.point_maps``), for points as given."""
+        from dataclasses import replace
+
         xy = self.levelled_xy(points) if xy is None else xy
-        return point_maps(xy, carriers, self.T, self.index, self.neighbours_k, self.min_distance_m,
+        maps = point_maps(xy, carriers, self.T, self.index, self.neighbours_k, self.min_distance_m,
                           self.weight_cell_m, self.relative_distance)
+        return maps if self.street_scale == 1.0 else replace(maps, A=maps.A / self.street_scale)
 
     def carriers(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(carrier (n,), distance to the run's street point it was taken from (n,) m)."""
         if self.source is None:
             raise ValueError("this warp has no carrier source (the run's street points)")
-        return self.source.carriers(points, self.origin)
+        return self.source.carriers(self._metric(points), self.origin)
+
+    def for_input_frame(self, street_scale: float) -> PointWarp:
+        """This warp taking points in the street frame's own units."""
+        from dataclasses import replace
+
+        return replace(self, street_scale=float(street_scale))
 
     def with_source(self, points: np.ndarray, carriers: np.ndarray) -> PointWarp:
         from dataclasses import replace

@@ -5,7 +5,7 @@ same run gives the same bytes. Arrays (S segments, V valid ones, F footprint poi
 
     format_version  ()        1
     crs, crs_wkt    ()  str   the scene CRS as written in scene.yaml, and as WKT
-    origin          (3,)      local origin of the input street frame (StreetSegments.origin)
+    origin          (3,)      local origin of the street frame in metres (StreetSegments.origin)
     up_rotation     (3,3)     levelling rotation: levelled = (p − origin) @ up_rotationᵀ
     T               (S,4,4)   segment transforms, input street frame → scene CRS
     valid           (V,)      indices of the valid segments (the others are never blended)
@@ -13,10 +13,11 @@ same run gives the same bytes. Arrays (S segments, V valid ones, F footprint poi
     footprint_segment (F,)    the segment of each footprint point
     neighbours      (V,K)     blending neighbours of each valid segment, nearest first, −1 padded
     neighbours_k, min_distance_m, weight_cell_m, relative_distance   () the blend's parameters
-    source_xyz      (N,3) f4  the run's street points minus ``origin``
+    source_xyz      (N,3) f4  the run's street points in metres minus ``origin``
     source_segment  (N,)  i4  the carrier segment each was moved with
     las_offset_m    (3,)      offsets of registered.laz (and of ``apply``'s LAZ outputs)
     las_scale_m     ()        their scale (0.001 unless the cloud is too wide for 1 mm)
+    street_scale    ()        street-frame units per metre: input points are divided by it first
 """
 
 from __future__ import annotations
@@ -62,6 +63,7 @@ def warp_arrays(stored: StoredWarp) -> dict[str, np.ndarray]:
         "weight_cell_m": np.float64(w.weight_cell_m), "relative_distance": np.bool_(w.relative_distance),
         "source_xyz": w.source.xyz_f32, "source_segment": w.source.segment,
         "las_offset_m": np.asarray(stored.las_offset_m, np.float64), "las_scale_m": np.float64(stored.las_scale_m),
+        "street_scale": np.float64(w.street_scale),
     }
 
 
@@ -96,5 +98,5 @@ def load_warp(path: Path) -> StoredWarp:
     index = SegmentIndex.from_arrays(a["valid"], a["footprint_xy"], a["footprint_segment"], a["neighbours"])
     warp = PointWarp(a["origin"], a["up_rotation"], a["T"], index, int(a["neighbours_k"]),
                      float(a["min_distance_m"]), float(a["weight_cell_m"]), bool(a["relative_distance"]),
-                     CarrierSource(a["source_xyz"], a["source_segment"]))
+                     CarrierSource(a["source_xyz"], a["source_segment"]), float(a.get("street_scale", 1.0)))
     return StoredWarp(warp, str(a["crs"]), str(a["crs_wkt"]), a["las_offset_m"], float(a["las_scale_m"]))

@@ -1,0 +1,93 @@
+"""Unknown street scale (toolkit.street_scale): GPS estimate, a given number, status without either."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from toolkit.cli import main
+
+RECIPE = Path(__file__).resolve().parents[1] / "recipes" / "dsm.yaml"
+
+
+@pytest.fixture(scope="module")
+def scaled_scenes(tmp_path_factory):
+    """tiny seed 0 with its street frame at scale 1, 0.25 and 4 (truth unchanged)."""
+    from toolkit.synth.generate import generate
+
+    root = tmp_path_factory.mktemp("scaled")
+    out = {}
+    for s in (1.0, 0.25, 4.0):
+        out[s] = root / f"tiny-{s:g}"
+        generate("tiny", 0, out[s], street_scale=s)
+    return out
+
+
+def _run(scene: Path, out: Path, *extra: str) -> tuple[int, dict]:
+    code = main(["run", str(RECIPE), "--scene", str(scene), "--out", str(out), "--no-rerun", "-q", *extra])
+    return code, json.loads((out / "metrics.json").read_text())
+
+
+def _without_gps(scene: Path) -> Path:
+    text = (scene / "scene.yaml").read_text()
+    path = scene / "scene-nogps.yaml"
+    path.write_text("\n".join(line for line in text.splitlines() if "gps:" not in line) + "\n")
+    return path
+
+
+def test_synth_scales_the_street_frame_and_not_the_truth(scaled_scenes):
+    from toolkit.io.cloud import read_points
+
+    a, b = (read_points(scaled_scenes[s] / "street/cloud.ply") for s in (1.0, 4.0))
+    assert np.allclose(b, 4.0 * a, rtol=1e-6, atol=1e-3)
+    ta, tb = (np.load(scaled_scenes[s] / "truth/street_points.npy") for s in (1.0, 4.0))
+    assert np.array_equal(ta, tb)
+
+
+@pytest.mark.parametrize("scale", [0.25, 4.0])
+def test_gps_estimates_the_scale_and_the_run_matches_the_metric_one(scaled_scenes, tmp_path, scale):
+    code1, m1 = _run(scaled_scenes[1.0], tmp_path / "one")
+    code, m = _run(scaled_scenes[scale], tmp_path / "scaled")
+    assert code == code1 == 0 and m["status"] == "ok"
+    est = m["street_scale"]
+    assert est["source"] == "gps" and abs(est["value"] / (scale * m1["street_scale"]["value"]) - 1) < 0.01
+    # the drift's mean scale is part of the estimate: within 1.5 % of the generator's factor
+    assert abs(est["value"] / scale - 1) < 0.015
+    h1, h = m1["truth"]["horizontal"]["median_m"], m["truth"]["horizontal"]["median_m"]
+    assert abs(h - h1) <= max(0.1 * h1, 0.05), (h, h1)
+    from toolkit.warp.store import load_warp
+    from toolkit.io.cloud import read_points
+    from toolkit.io.attributes import open_cloud
+
+    warp = load_warp(tmp_path / "scaled").warp
+    raw = read_points(scaled_scenes[scale] / "street/cloud.ply")[:5000]
+    carriers, dist = warp.carriers(raw)
+    moved = warp.maps(raw, carriers).apply(raw)
+    reg = open_cloud(tmp_path / "scaled" / "registered.ply")
+    first = next(iter(reg.chunks(5000))).xyz
+    assert dist.max() < 1e-3 and np.abs(moved - first).max() < 0.01
+
+
+def test_a_given_scale_is_used_and_reported(scaled_scenes, tmp_path):
+    code, m = _run(_without_gps(scaled_scenes[0.25]), tmp_path / "given", "-s", "street_scale=0.25")
+    assert code == 0 and m["street_scale"] == {"value": 0.25, "source": "recipe"}
+    assert m["truth"]["horizontal"]["median_m"] < 0.5
+
+
+def test_without_gps_a_wrong_scale_ends_unreliable_with_exit_4(scaled_scenes, tmp_path, capsys):
+    code, m = _run(_without_gps(scaled_scenes[0.25]), tmp_path / "assumed")
+    assert m["street_scale"] == {"value": 1.0, "source": "assumed"}
+    assert code == 4 and m["status"] == "unreliable"
+    assert "street scale" in capsys.readouterr().err.strip().splitlines()[-1]
+
+
+@pytest.mark.parametrize("value, words", [("big", "must be 'auto' or a number"), ("0.001", "outside")])
+def test_a_bad_street_scale_is_one_line_and_exit_2(scaled_scenes, tmp_path, capsys, value, words):
+    code = main(["run", str(RECIPE), "--scene", str(scaled_scenes[1.0]), "--out", str(tmp_path / "bad"),
+                 "--no-rerun", "-q", "-s", f"street_scale={value}"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and words in err[0] and "street_scale" in err[0]
+    assert not (tmp_path / "bad").exists()

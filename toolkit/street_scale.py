@@ -1,0 +1,89 @@
+"""The street frame's scale: street-frame units per metre (a monocular SfM model has no metric scale).
+
+``street_scale`` in scene.yaml or in a recipe (the recipe wins) is ``auto`` (the default) or a
+number in [0.05, 20] (1.0: the frame is metric). ``auto`` estimates it from ``street/gps.csv`` when
+the scene has one and its fixes match the COLMAP images: the median, over pairs of fixes 50-500 m
+apart, of the camera-centre distance over the fix distance (robust to wrong fixes; the route's mean
+scale drift is part of it). Without GPS, ``auto`` assumes 1 and says so in metrics.json. The
+pipeline reads the street cloud and the COLMAP model divided by the scale, so every stage works in
+metres; the stored warp takes input-frame points (``crossview apply``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from toolkit.errors import SceneError
+from toolkit.types import Scene, StreetScale
+
+SCALE_RANGE = (0.05, 20.0)
+PAIR_RANGE_M = (50.0, 500.0)
+MIN_PAIRS = 20
+
+
+def parse_street_scale(value: Any, where: str) -> float | None:
+    """None for ``auto`` (or absent), else the number; a SceneError naming ``where`` otherwise."""
+    if value is None or value == "auto":
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise SceneError(f"{where}: street_scale must be 'auto' or a number, got {value!r}")
+    lo, hi = SCALE_RANGE
+    if not lo <= float(value) <= hi:
+        raise SceneError(f"{where}: street_scale {value} is outside [{lo:g}, {hi:g}]")
+    return float(value)
+
+
+def resolve_street_scale(scene: Scene, recipe_value: Any = None, recipe_path: Path | None = None) -> Scene:
+    """The scene with its street scale set: the recipe's, else the scene's, else estimated."""
+    given = parse_street_scale(recipe_value, str(recipe_path or "recipe"))
+    source = "recipe"
+    if given is None:
+        given = parse_street_scale(scene.manifest.get("street_scale"), str(scene.root / "scene.yaml"))
+        source = "scene"
+    if given is not None:
+        return replace(scene, street_scale=StreetScale(given, source))
+    found = scale_from_gps(scene) if scene.has("gps") and scene.has("sparse") else None
+    return replace(scene, street_scale=found or StreetScale(1.0, "assumed"))
+
+
+def scale_from_gps(scene: Scene) -> StreetScale | None:
+    """The median ratio of camera-centre to fix distances over fix pairs 50-500 m apart (None: < 20 pairs)."""
+    from pyproj import Transformer
+
+    from toolkit.io.gps import match_images, read_gps_csv
+    from toolkit.scene import read_sparse_raw
+
+    fixes = read_gps_csv(scene.files.gps)
+    model = read_sparse_raw(scene)
+    image = match_images(list(fixes.names), model.image_names)
+    hit = np.flatnonzero(image >= 0)
+    if len(hit) < 3:
+        return None
+    east, north = Transformer.from_crs("EPSG:4326", scene.crs, always_xy=True).transform(
+        fixes.lonlat[hit, 0], fixes.lonlat[hit, 1])
+    world = np.column_stack([east, north])
+    cams = model.centres[image[hit]]
+    # pairs along the capture order, at every offset whose fixes are 50-500 m apart
+    ratios = []
+    for step in range(1, len(hit)):
+        d_fix = np.linalg.norm(world[step:] - world[:-step], axis=1)
+        use = (d_fix >= PAIR_RANGE_M[0]) & (d_fix <= PAIR_RANGE_M[1])
+        if not use.any():
+            continue
+        d_cam = np.linalg.norm(cams[step:] - cams[:-step], axis=1)
+        ratios.append(d_cam[use] / d_fix[use])
+        if sum(len(r) for r in ratios) > 200_000:
+            break
+    r = np.concatenate(ratios) if ratios else np.zeros(0)
+    if len(r) < MIN_PAIRS:
+        return None
+    value = float(np.median(r))
+    lo, hi = SCALE_RANGE
+    if not lo <= value <= hi:
+        raise SceneError(f"{scene.files.gps}: the street frame's scale estimated from GPS ({value:.4g}) is outside "
+                         f"[{lo:g}, {hi:g}]: check the fixes, or set street_scale")
+    return StreetScale(value, "gps", len(r))
