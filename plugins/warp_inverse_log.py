@@ -66,8 +66,8 @@ class InverseLog(Stage):
             description="Route distance (m) beyond which a point, neighbour or camera "
                         "vote is on another pass (None: off; needs COLMAP)")
         pass_sparse_gap_m: float = Field(
-            2.0, gt=0, description="Only sparse points within this distance of a "
-                                   "street point give it a route position (m)")
+            10.0, gt=0, description="Only sparse points within this distance of a "
+                                    "street point give it a route position (m)")
 
     @classmethod
     def scene_needs(cls, params) -> tuple[str, ...]:

@@ -216,4 +216,5 @@ def test_a_warp_without_blending_moves_each_point_by_its_carrier_transform():
     carriers, _ = warp.carriers(xyz[:5000])
     moved = warp.maps(xyz[:5000], carriers).apply(xyz[:5000])
     T = warp.T[carriers]
-    assert np.abs(moved - (np.einsum("nab,nb->na", T[:, :3, :3], xyz[:5000]) + T[:, :3, 3])).max() < 1e-6
+    metric = xyz[:5000] / warp.street_scale         # the transforms act on the frame in metres
+    assert np.abs(moved - (np.einsum("nab,nb->na", T[:, :3, :3], metric) + T[:, :3, 3])).max() < 1e-6

@@ -42,7 +42,7 @@ def _drift(root: Path):
         "global_rotation",
         "global_translation",
     )
-    return Drift(**{k: d[k] for k in fields}, global_scale=float(d["global_scale"])), d
+    return Drift(**{k: d[k] for k in fields}, global_scale=d["global_scale"].item()), d
 
 
 def _config(root: Path):

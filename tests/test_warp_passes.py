@@ -38,8 +38,17 @@ def test_reanchor_moves_only_points_of_another_pass_and_only_to_their_own_pass()
     fp_seg = np.array([0, 1, 2])
     xy = np.array([[0.0, 0.5], [0.0, 0.5], [0.0, 0.5], [0.0, 0.5]])
     point_s = np.array([5.0, 990.0, np.nan, 2000.0])   # own pass, other pass, unknown, no segment of its pass
-    out = reanchor_other_pass(np.zeros(4, np.int64), xy, point_s, seg_s, fp_xy, fp_seg, 200.0, 0.1)
+    out = reanchor_other_pass(np.zeros(4, np.int64), xy, point_s, seg_s, fp_xy, fp_seg, 200.0)
     assert out.tolist() == [0, 1, 0, 0]                 # nearer segment 2 is of the wrong pass for point 1
+
+
+def test_reanchor_never_picks_another_pass_at_the_same_place_over_its_own_pass_farther_off():
+    seg_s = np.array([0.0, 300.0, 850.0])      # 0: the point's anchor; 1: another pass here; 2: its own, 80 m off
+    fp_xy = np.array([[0.0, 0.0], [0.0, 1.0], [80.0, 0.0]])
+    fp_seg = np.array([0, 1, 2])
+    out = reanchor_other_pass(np.zeros(1, np.int64), np.array([[0.0, 0.5]]), np.array([900.0]), seg_s, fp_xy,
+                              fp_seg, 200.0)
+    assert out.tolist() == [2]
 
 
 def _loop_scene(tmp_path):

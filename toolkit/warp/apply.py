@@ -33,8 +33,7 @@ class PassCheck:
     """Re-anchoring of points of another pass of the route (see ``toolkit.warp.passes``)."""
 
     pass_gap_m: float | None = None      # None: off
-    max_gap_m: float = 2.0
-    route_scale: float = 0.1
+    max_gap_m: float = 10.0
 
 
 def camera_anchors(model: SparseModel, dense: np.ndarray, carrier: np.ndarray, valid: np.ndarray,
@@ -140,7 +139,7 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Sc
         point_s[unknown] = segment_s[carrier[ask][unknown]]
         anchors[ask] = reanchor_other_pass(anchors[ask], xy[ask], point_s, segment_s,
                                            np.asarray(index.all_tree.data), index.all_seg,
-                                           passes.pass_gap_m, passes.route_scale)
+                                           passes.pass_gap_m)
     warp = PointWarp(np.asarray(street.origin, np.float64), np.asarray(street.up_rotation, np.float64), T, index,
                      k, d_min, cell_m, relative)
     moved = warp.maps(pts, anchors, xy).apply(pts)
@@ -161,7 +160,7 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Sc
             if same_pass is not None:  # the nearest segment may be on another pass: as for points
                 cam_anchor = reanchor_other_pass(cam_anchor, cxy, np.where(unseen, cam_s, np.nan), segment_s,
                                                  np.asarray(index.all_tree.data), index.all_seg,
-                                                 passes.pass_gap_m, passes.route_scale)
+                                                 passes.pass_gap_m)
         pos, Rb, spread = blend_rigid(C, cxy, cam_anchor, T, index, camera_k, d_min, relative)
         R = np.einsum("cab,cdb->cad", model.R, Rb)          # R_wc · R̄ᵀ
         t = -np.einsum("cab,cb->ca", R, pos)

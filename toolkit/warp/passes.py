@@ -10,8 +10,8 @@ of the first and last 5 % of the route made 47–85 % of the points above the 95
 Each point's route position (metres travelled by the cameras that observe the sparse point next to
 it, within ``max_gap_m``) is compared with its anchor segment's route position
 (``toolkit.refine.route``); a point farther than ``pass_gap_m`` along the route from its anchor is
-re-anchored on the nearest valid segment of its own pass (nearest by footprint distance, with the
-route distance as a third coordinate scaled by ``route_scale`` so another pass is never nearer).
+re-anchored on the nearest valid segment of its own pass (nearest by footprint distance among the
+segments within ``pass_gap_m`` of it along the route).
 A segment's route position is where its façade was seen (``toolkit.refine.route``); a point with no
 sparse point near it takes its carrier's (the façade segment nearest to it, registered or not).
 """
@@ -59,12 +59,15 @@ def point_route_positions(points: np.ndarray, sparse_xyz: np.ndarray, sparse_s: 
 
 
 def reanchor_other_pass(anchors: np.ndarray, xy: np.ndarray, point_s: np.ndarray, segment_s: np.ndarray,
-                        fp_xy: np.ndarray, fp_seg: np.ndarray, pass_gap_m: float,
-                        route_scale: float) -> np.ndarray:
+                        fp_xy: np.ndarray, fp_seg: np.ndarray, pass_gap_m: float) -> np.ndarray:
     """Anchors with points of another pass moved to the nearest valid segment of their own pass.
 
     ``fp_xy``/``fp_seg``: footprint points of the valid segments and their segment; ``segment_s``:
-    (S,) route position per segment (NaN: unknown, never judged nor chosen).
+    (S,) route position per segment (NaN: unknown, never judged nor chosen). Points are taken in
+    route bins of ``pass_gap_m / 2``; a bin's candidates are the segments within ``pass_gap_m`` of
+    every point in it, searched by footprint distance alone (a segment of another pass at the same
+    place must never win; Helsinki north: 8 % of the points, 9 m off, had been kept on one). A point
+    with no segment of its own pass keeps its anchor.
     """
     anchors = np.asarray(anchors, np.int64).copy()
     s_anchor = segment_s[anchors]
@@ -72,11 +75,17 @@ def reanchor_other_pass(anchors: np.ndarray, xy: np.ndarray, point_s: np.ndarray
     keep = np.isfinite(segment_s[fp_seg])
     if not other.any() or not keep.any():
         return anchors
-    fp_key = np.column_stack([fp_xy[keep], segment_s[fp_seg[keep]] * route_scale])
-    q = np.column_stack([xy[other], point_s[other] * route_scale])
-    _, nn = cKDTree(fp_key).query(q, workers=query_workers(len(q)))
-    cand = fp_seg[keep][nn]
-    same_pass = np.abs(segment_s[cand] - point_s[other]) <= pass_gap_m
+    fp_xy, fp_seg = fp_xy[keep], fp_seg[keep]
+    fp_s = segment_s[fp_seg]
     idx = np.flatnonzero(other)
-    anchors[idx[same_pass]] = cand[same_pass]
+    width = pass_gap_m / 2
+    bins = np.floor(point_s[idx] / width).astype(np.int64)
+    for b in np.unique(bins):
+        rows = idx[bins == b]
+        lo = b * width
+        cand = (fp_s >= lo + width - pass_gap_m) & (fp_s <= lo + pass_gap_m)   # within the gap of the whole bin
+        if not cand.any():
+            continue
+        _, nn = cKDTree(fp_xy[cand]).query(xy[rows], workers=query_workers(len(rows)))
+        anchors[rows] = fp_seg[cand][nn]
     return anchors
