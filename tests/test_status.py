@@ -72,6 +72,9 @@ def test_good_figures_are_ok_with_full_confidence():
     ({"outside_grid_share": 0.8}, "outside the over-view"),
     ({"neighbour_disagree_share": 0.7, "neighbour_gap_median_m": 35.0}, "neighbouring segments"),
     ({"registered_point_share": 0.1}, "street points"),
+    ({"camera_height_median_m": 0.5}, "street scale is likely wrong"),
+    ({"camera_height_median_m": 9.0}, "street scale is likely wrong"),
+    ({"segment_scale_median": 0.955}, "median scale of 0.955"),
 ])
 def test_each_hard_reason_fires_first(change, fragment):
     verdict = StatusRule().judge({**GOOD, **change})

@@ -64,6 +64,7 @@ class StatusRule:
     max_facade_distance_median_m: float = 1.2
     max_neighbour_disagree_share: float = 0.5
     max_outside_grid_share: float = 0.5
+    max_segment_scale_deviation: float = 0.035   # |median segment scale − 1|: drift of ±3 % moves it ≤ 1.5 %
     min_camera_height_m: float = 0.8    # street capture: handheld ~1.5 m, car roof ~2.5 m, mast ~4 m
     max_camera_height_m: float = 6.0
     gps_sigma_factor: float = 3.0       # GPS tolerance = max(gps_sigma_factor · σ, gps_min_tolerance_m)
@@ -187,6 +188,14 @@ def _hard_neighbours(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
             f"by their own transforms (median {f.get('neighbour_gap_median_m') or 0:.1f} m): wrong matches")
 
 
+def _hard_segment_scale(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
+    m = f.get("segment_scale_median")
+    if m is None or abs(m - 1.0) <= rule.max_segment_scale_deviation:
+        return None
+    return (f"the registered segments need a median scale of {m:.3f} (at most {rule.max_segment_scale_deviation:.1%}"
+            f" from 1 expected): the matches squeeze or stretch the street frame (wrong matches or street scale)")
+
+
 def _hard_camera_height(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
     h = f.get("camera_height_median_m")
     if h is None or rule.min_camera_height_m <= h <= rule.max_camera_height_m:
@@ -208,7 +217,8 @@ def _hard_registered(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
 HARD_CHECKS = {"gps_residual_ratio": _hard_gps, "facade_support_share": _hard_facades,
                "facade_distance_median_m": _hard_facade_distance,
                "outside_grid_share": _hard_outside, "neighbour_disagree_share": _hard_neighbours,
-               "registered_point_share": _hard_registered, "camera_height_median_m": _hard_camera_height}
+               "registered_point_share": _hard_registered, "camera_height_median_m": _hard_camera_height,
+               "segment_scale_median": _hard_segment_scale}
 
 SOFT_REASONS = {
     "registered_point_share": lambda r, f: f"{f['registered_point_share']:.0%} of the street points on registered "
@@ -288,6 +298,7 @@ def measure(results: Mapping[str, Any], scene: Scene | None, params: AssessParam
     cameras: AdjustedCameras | None = results.get("cameras")
     figures: dict[str, Any] = {}
     figures.update(registered_share(street, transforms))
+    figures["segment_scale_median"] = segment_scale_median(transforms)
     figures.update(matching_figures(matches))
     figures.update(prior_figures(results.get("costs")))
     figures.update(neighbour_agreement(results.get("graphs"), street, transforms, params.neighbour_tol_m))
@@ -314,6 +325,14 @@ def registered_share(street: StreetSegments | None, transforms: SegmentTransform
     out["registered_share"] = float(valid.mean()) if len(valid) else 0.0
     out["registered_point_share"] = float(on_valid.mean()) if len(on_valid) else 0.0
     return out
+
+
+def segment_scale_median(transforms: SegmentTransforms | None) -> float | None:
+    """Median scale (cube root of the determinant) of the valid segment transforms."""
+    if transforms is None or not np.asarray(transforms.valid, bool).any():
+        return None
+    T = np.asarray(transforms.T, np.float64)[np.asarray(transforms.valid, bool)]
+    return float(np.median(np.cbrt(np.linalg.det(T[:, :3, :3]))))
 
 
 def matching_figures(matches: Matches | None) -> dict[str, Any]:
