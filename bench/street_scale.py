@@ -95,11 +95,12 @@ def main() -> None:
           f"{'h/h1':>5s} {'p95/p1':>6s} {'status':10s} exit")
     for r in rows:
         base = ref.get((r["scene"], r["gps"]))
-        est = r["scale"].get("value")
+        est = r["scale"].get("gps_estimate", r["scale"].get("value"))
+        rel = "-" if est is None else f"{est / r['S']:.4f}"
         ratio = (lambda k: f"{r[k] / base[k]:.2f}" if base and r[k] and base[k] else "-")
         fmt = (lambda v: "-" if v is None else f"{v:.2f}")
         print(f"{r['scene']:14s} {r['S']:5g} {'yes' if r['gps'] else 'no':4s} "
-              f"{'-' if est is None else f'{est / r['S']:.4f}':>7s} {r['scale'].get('source', '-'):8s} "
+              f"{rel:>7s} {r['scale'].get('source', '-'):8s} "
               f"{fmt(r['h']):>6s} {fmt(r['p95']):>6s} {ratio('h'):>5s} {ratio('p95'):>6s} "
               f"{str(r['status']):10s} {r['exit']}")
 

@@ -4,7 +4,8 @@
 number in [0.05, 20] (1.0: the frame is metric). ``auto`` estimates it from ``street/gps.csv`` when
 the scene has one and its fixes match the COLMAP images: the median, over pairs of fixes 50-500 m
 apart, of the camera-centre distance over the fix distance (robust to wrong fixes; the route's mean
-scale drift is part of it). Without GPS, ``auto`` assumes 1 and says so in metrics.json. The
+scale drift is part of it); an estimate within 2 % of 1 is taken as metric (1), since a route's
+scale drift alone moves it that much and the per-segment scale (refine) takes it up. Without GPS, ``auto`` assumes 1 and says so in metrics.json. The
 pipeline reads the street cloud and the COLMAP model divided by the scale, so every stage works in
 metres; the stored warp takes input-frame points (``crossview apply``).
 """
@@ -21,6 +22,7 @@ from toolkit.errors import SceneError
 from toolkit.types import Scene, StreetScale
 
 SCALE_RANGE = (0.05, 20.0)
+METRIC_TOLERANCE = 0.02   # a GPS estimate this close to 1 is taken as metric (within the scale drift)
 PAIR_RANGE_M = (50.0, 500.0)
 MIN_PAIRS = 20
 
@@ -86,4 +88,6 @@ def scale_from_gps(scene: Scene) -> StreetScale | None:
     if not lo <= value <= hi:
         raise SceneError(f"{scene.files.gps}: the street frame's scale estimated from GPS ({value:.4g}) is outside "
                          f"[{lo:g}, {hi:g}]: check the fixes, or set street_scale")
-    return StreetScale(value, "gps", len(r))
+    if abs(value - 1.0) <= METRIC_TOLERANCE:
+        return StreetScale(1.0, "gps", len(r), estimate=value)
+    return StreetScale(value, "gps", len(r), estimate=value)

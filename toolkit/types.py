@@ -139,13 +139,14 @@ class StreetScale:
     value: float
     source: str
     pairs: int = 0
+    estimate: float | None = None   # the GPS estimate (value is 1 when it is within 2 % of 1)
 
     def as_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {"value": round(self.value, 6), "source": self.source}
         if self.source == "gps":
+            out["gps_estimate"] = round(float(self.estimate), 6)
             out["gps_pairs"] = self.pairs
         return out
-
 
 
 @dataclass(frozen=True)
