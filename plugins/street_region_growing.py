@@ -292,7 +292,8 @@ class RegionGrowing(Stage):
         if vertical is None or vertical.support < p.vertical_min_support:
             support = 0.0 if vertical is None else vertical.support
             raise StageError(f"{WHO}: no vertical structure: normals have no dominant orientation "
-                             f"(support {support:.2f} < vertical_min_support {p.vertical_min_support})")
+                             f"(support {support:.2f} < vertical_min_support {p.vertical_min_support}; "
+                             f"a street frame far from metric does this: set street_scale)")
         return vertical
 
 
