@@ -44,10 +44,11 @@ def mini_scene(tmp_path: Path) -> Path:
         observations=np.array([[0, 0, 320.0, 240.0], [1, 0, 420.0, 240.0]]),
     )
     write_model(model, root / "street/sparse")
+    # metric by declaration: its two cameras are no street capture for the assumed-scale check
     write_manifest(root, "mini", "EPSG:32617", {
         "overview": {"dsm": "overview/dsm.tif"},
         "street": {"cloud": "street/cloud.ply", "sparse": "street/sparse"},
-    })
+    }, extra={"street_scale": 1.0})
     return root
 
 

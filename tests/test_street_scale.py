@@ -78,9 +78,19 @@ def test_a_given_scale_is_used_and_reported(scaled_scenes, tmp_path):
     assert m["truth"]["horizontal"]["median_m"] < 0.5
 
 
-def test_without_gps_a_wrong_scale_ends_unreliable_with_exit_4(scaled_scenes, tmp_path, capsys):
-    code, m = _run(_without_gps(scaled_scenes[0.25]), tmp_path / "assumed")
-    assert m["street_scale"] == {"value": 1.0, "source": "assumed"}
+def test_without_gps_a_wrong_scale_stops_after_the_street_step_with_one_line(scaled_scenes, tmp_path, capsys):
+    out = tmp_path / "assumed"
+    code = main(["run", str(RECIPE), "--scene", str(_without_gps(scaled_scenes[0.25])), "--out", str(out),
+                 "--no-rerun", "-q"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "cameras sit 0.5" in err[0] and "street_scale" in err[0]
+    assert not out.exists()
+
+
+def test_a_wrong_given_scale_ends_unreliable_with_exit_4(scaled_scenes, tmp_path, capsys):
+    """A given scale is not second-guessed before matching; the status judges the result."""
+    code, m = _run(_without_gps(scaled_scenes[0.25]), tmp_path / "wrong", "-s", "street_scale=1")
+    assert m["street_scale"] == {"value": 1.0, "source": "recipe"}
     assert code == 4 and m["status"] == "unreliable"
     assert "street scale" in capsys.readouterr().err.strip().splitlines()[-1]
 

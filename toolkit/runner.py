@@ -19,7 +19,7 @@ from toolkit.overlap import BufferedObserver, Prefetcher, independent
 from toolkit.recipe import Recipe, StepSpec, load_recipe
 from toolkit.registry import Registry, default_registry
 from toolkit.scene import FIELD_TO_MANIFEST, load_scene
-from toolkit.street_scale import resolve_street_scale
+from toolkit.street_scale import check_assumed_scale, resolve_street_scale
 from toolkit.stage import KIND_INPUTS, KIND_OPTIONAL, KIND_OUTPUT, KIND_OUTPUT_TYPE, Stage
 from toolkit.status import Assessment, assess
 from toolkit.threads import thread_budget
@@ -174,6 +174,8 @@ def execute(plan: Plan, obs: Observer | None = None,
             for s, (out, seconds) in pairs:
                 results[KIND_OUTPUT[s.name]] = out
                 timings[s.name] = seconds
+                if s.name == "street":
+                    check_assumed_scale(out, plan.scene)
     return results, timings
 
 
