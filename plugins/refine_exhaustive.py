@@ -54,6 +54,7 @@ from toolkit.refine.route import neighbour_keys, route_positions
 from toolkit.refine.scale import ScaleConfig, route_scales, scaling_about
 from toolkit.refine.rotation import smoothed_rotations
 from toolkit.refine.search2d import AllOutlines, SearchParams, search_segments
+from toolkit.refine.transforms import apply_each
 from toolkit.refine.segments import SegmentPoints, input_anchors
 from toolkit.stage import Stage, StageParams
 from toolkit.types import Matches, OverviewSegments, Scene, SegmentTransforms, StreetSegments
@@ -314,17 +315,14 @@ class Exhaustive(Stage):
         """``warn_heights`` with the share of registered segments outside the height source."""
         uncovered = None
         if heights is not None:
-            anchors = input_anchors(street)
-            placed = np.einsum("sab,sb->sa", T[:, :3, :3], anchors) + T[:, :3, 3]
-            uncovered = ~np.isfinite(heights.sample(placed[:, :2]))
+            uncovered = ~np.isfinite(heights.sample(apply_each(T, input_anchors(street))[:, :2]))
         source = "DSM" if scene.has("dsm") else "terrain model" if scene.has("dem") else "over-view cloud"
         warn_heights(st.t_z, valid, obs, uncovered, source)
 
     def _set_scales(self, street, pts, st, T, valid) -> None:
         """Each segment's scale from its route neighbours' registered centres (``toolkit.refine.scale``);
         from here on its points are scaled about its levelled centre."""
-        anchors = input_anchors(street)
-        placed = np.einsum("sab,sb->sa", T[:, :3, :3], anchors) + T[:, :3, 3]
+        placed = apply_each(T, input_anchors(street))
         lev_xy = np.asarray(street.centroids, np.float64).reshape(-1, 2)
         found = route_scales(placed[:, :2], lev_xy, st.route_s, valid, st.points * st.conf, self.params.scale)
         pivots = np.column_stack([lev_xy, np.nan_to_num(np.asarray(street.ground_z, np.float64), nan=0.0)])

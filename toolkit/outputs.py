@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from toolkit.refine.transforms import scale_of
 from toolkit.scene import load_points
 
 
@@ -160,14 +161,12 @@ def _write_report(out: Path, plan, results, timings, warnings, assessment) -> No
     ))
 
 
-
-
 def segment_scales(transforms) -> dict[str, float] | None:
     """5th, 50th and 95th percentile of the valid segments' scales (metric frame → scene), or None."""
     T = np.asarray(transforms.T, np.float64)[np.asarray(transforms.valid, bool)]
     if len(T) == 0:
         return None
-    s = np.cbrt(np.linalg.det(T[:, :3, :3]))
+    s = scale_of(T[:, :3, :3])
     p5, p50, p95 = np.percentile(s, [5, 50, 95])
     return {"p5": round(float(p5), 5), "median": round(float(p50), 5), "p95": round(float(p95), 5)}
 

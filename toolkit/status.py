@@ -17,6 +17,7 @@ from typing import Any, Iterator, Mapping
 import numpy as np
 
 from toolkit.errors import CrossviewError
+from toolkit.refine.transforms import apply_each, scale_of
 from toolkit.types import (
     AdjustedCameras,
     ConjugateGraphs,
@@ -332,7 +333,7 @@ def segment_scale_median(transforms: SegmentTransforms | None) -> float | None:
     if transforms is None or not np.asarray(transforms.valid, bool).any():
         return None
     T = np.asarray(transforms.T, np.float64)[np.asarray(transforms.valid, bool)]
-    return float(np.median(np.cbrt(np.linalg.det(T[:, :3, :3]))))
+    return float(np.median(scale_of(T[:, :3, :3])))
 
 
 def matching_figures(matches: Matches | None) -> dict[str, Any]:
@@ -384,7 +385,7 @@ def neighbour_agreement(graphs: ConjugateGraphs | None, street: StreetSegments |
     mid = np.column_stack([(street.centroids[i] + street.centroids[j]) / 2, (ground[i] + ground[j]) / 2])
     mid_input = mid @ street.up_rotation + street.origin  # levelled → input street frame
     T = np.asarray(transforms.T, np.float64)
-    gap = np.linalg.norm(_apply(T[i], mid_input) - _apply(T[j], mid_input), axis=1)
+    gap = np.linalg.norm(apply_each(T[i], mid_input) - apply_each(T[j], mid_input), axis=1)
     out.update(neighbour_gap_median_m=float(np.median(gap)), neighbour_gap_p90_m=float(np.percentile(gap, 90)),
                neighbour_disagree_share=float((gap > tol_m).mean()))
     return out
@@ -460,7 +461,7 @@ def camera_height_m(registration: Registration | None, street: StreetSegments | 
     from scipy.spatial import cKDTree
 
     g = np.asarray(registration.points)[_even_sample(ground, max_points)]
-    centres = -np.einsum("cji,cj->ci", registration.R, registration.t)
+    centres = _output_cameras(registration, None)[1]
     near = cKDTree(g[:, :2]).query_ball_point(centres[:, :2], radius_m)
     heights = [c[2] - np.median(g[idx, 2]) for c, idx in zip(centres, near) if len(idx) >= 5]
     return float(np.median(heights)) if heights else None
@@ -506,10 +507,6 @@ DEFAULT_GPS_SIGMA_M = 10.0  # as toolkit.matching.gps assumes when gps.csv state
 
 
 # --- helpers ------------------------------------------------------------------------------------
-def _apply(T: np.ndarray, p: np.ndarray) -> np.ndarray:
-    return np.einsum("nab,nb->na", T[:, :3, :3], p) + T[:, :3, 3]
-
-
 def _even_sample(index: np.ndarray, max_points: int) -> np.ndarray:
     """At most ``max_points`` entries of ``index``, evenly spaced (deterministic)."""
     if len(index) <= max_points:

@@ -70,7 +70,7 @@ def scale_from_gps(scene: Scene) -> StreetScale | None:
     world = np.column_stack([east, north])
     cams = model.centres[image[hit]]
     # pairs along the capture order, at every offset whose fixes are 50-500 m apart
-    ratios = []
+    ratios, count = [], 0
     for step in range(1, len(hit)):
         d_fix = np.linalg.norm(world[step:] - world[:-step], axis=1)
         use = (d_fix >= PAIR_RANGE_M[0]) & (d_fix <= PAIR_RANGE_M[1])
@@ -78,7 +78,8 @@ def scale_from_gps(scene: Scene) -> StreetScale | None:
             continue
         d_cam = np.linalg.norm(cams[step:] - cams[:-step], axis=1)
         ratios.append(d_cam[use] / d_fix[use])
-        if sum(len(r) for r in ratios) > 200_000:
+        count += len(ratios[-1])
+        if count > 200_000:
             break
     r = np.concatenate(ratios) if ratios else np.zeros(0)
     if len(r) < MIN_PAIRS:

@@ -5,9 +5,9 @@ median-filtered) is rotated onto the over-view ground normal around the segment 
 height offset t_z is the robust difference between over-view ground heights and the street ground
 heights at the same places. Over-view heights come from the DSM when the scene has one, else from
 the terrain model (``overview.dem``, bare earth), else from the over-view cloud (lowest point per
-grid cell), else from the over-view segments' ground heights (and a level ground). The robust difference is the mean of the 10–60 % slice of the sorted
-differences, as the released code does for DSM road heights: cars, trees and building edges in
-the DSM only ever raise it.
+grid cell), else from the over-view segments' ground heights (and a level ground). The robust
+difference is the mean of the 10–60 % slice of the sorted differences, as the released code does
+for DSM road heights: cars, trees and building edges in the DSM only ever raise it.
 """
 
 from __future__ import annotations

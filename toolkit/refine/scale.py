@@ -50,18 +50,22 @@ def route_scales(placed_xy: np.ndarray, input_xy: np.ndarray, route_s: np.ndarra
     idx = np.flatnonzero(valid & np.isfinite(route_s))
     if len(idx) < p.min_pairs + 1:
         return SegmentScales(scale, pairs)
-    d_in = np.linalg.norm(input_xy[idx, None] - input_xy[None, idx], axis=2)
-    d_out = np.linalg.norm(placed_xy[idx, None] - placed_xy[None, idx], axis=2)
-    ratio = np.divide(d_out, d_in, out=np.ones_like(d_in), where=d_in > 0)
-    w = d_in * np.sqrt(np.outer(weight[idx], weight[idx]))
-    usable = np.triu(d_in >= p.min_baseline_m, 1)
+    idx = idx[np.argsort(route_s[idx], kind="stable")]
+    s_sorted = route_s[idx]
     lo, hi = 1.0 / (1.0 + p.max_deviation), 1.0 + p.max_deviation
     for i in idx:
-        inside = np.abs(route_s[idx] - route_s[i]) <= p.window_m
-        pair = usable & inside[:, None] & inside[None, :]
+        # the members of i's window: a contiguous run of the route-sorted segments
+        a = max(int(np.searchsorted(s_sorted, route_s[i] - p.window_m)) - 1, 0)
+        b = int(np.searchsorted(s_sorted, route_s[i] + p.window_m, side="right")) + 1
+        members = idx[a:b][np.abs(s_sorted[a:b] - route_s[i]) <= p.window_m]
+        d_in = np.linalg.norm(input_xy[members, None] - input_xy[None, members], axis=2)
+        d_out = np.linalg.norm(placed_xy[members, None] - placed_xy[None, members], axis=2)
+        pair = np.triu(d_in >= p.min_baseline_m, 1)
         pairs[i] = int(pair.sum())
         if pairs[i] >= p.min_pairs:
-            scale[i] = float(np.clip(_shrunk(np.log(ratio[pair]), w[pair], int(inside.sum())), lo, hi))
+            ratio = d_out[pair] / d_in[pair]
+            w = d_in[pair] * np.sqrt(np.outer(weight[members], weight[members])[pair])
+            scale[i] = float(np.clip(_shrunk(np.log(ratio), w, len(members)), lo, hi))
     return SegmentScales(scale, pairs)
 
 

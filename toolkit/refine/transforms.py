@@ -39,9 +39,19 @@ def apply(T: np.ndarray, p: np.ndarray) -> np.ndarray:
     return p @ T[:3, :3].T + T[:3, 3]
 
 
+def apply_each(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """(N,4,4) transforms, each applied to its own point of (N,3)."""
+    return np.einsum("nab,nb->na", T[:, :3, :3], p) + T[:, :3, 3]
+
+
+def scale_of(M: np.ndarray) -> np.ndarray:
+    """(...) scale of (...,3,3) similarity linear parts s·R: the cube root of the determinant."""
+    return np.cbrt(np.linalg.det(M))
+
+
 def rotation_part(M: np.ndarray) -> np.ndarray:
-    """(...,3,3) similarity linear parts s·R → R (divided by the cube root of the determinant)."""
-    s = np.cbrt(np.linalg.det(M))
+    """(...,3,3) similarity linear parts s·R → R."""
+    s = scale_of(M)
     return M / np.where(s != 0, s, 1.0)[..., None, None]
 
 
