@@ -1,7 +1,7 @@
 """Real-city scene matrix: every recipe on scenes built from real city models it has never seen.
 
     .venv/bin/python bench/cities.py [--only SUBSTR] [--recipes dsm,osm,label_map] [--gps]
-        [--build-only] [--jobs 1]
+        [--build-only] [--jobs 1] [--set KEY=VALUE ... --tag NAME]
 
 Six real geometries from ../shared/data/raw (Den Haag LoD2 CityJSON, Delft 3dfier LoD1 CityJSON,
 two districts of Helsinki's OSM extract, two villages of Liechtenstein's OSM extract, cropped with
@@ -25,7 +25,8 @@ truth/street_points.npy), match precision/recall, whether loopy BP converged (me
 assessment, else the run's warnings), the run's status and confidence ('-' when metrics.json has
 none), exit code, seconds. The bar: horizontal median ≤ 0.5 m, p95 ≤ 1.5 m and 3D mean below the
 rigid fit's. Rows go to data/cities/results.json (after each run) under the code state
-(``git rev-parse --short HEAD``, "-dirty" when tracked files differ from it; each row also keeps
+(``git rev-parse --short HEAD``, "-dirty" when tracked files differ from it, "+NAME" for a variant
+run with ``--set`` overrides and ``--tag NAME``, whose outputs go to data/cities/out-NAME/; each row also keeps
 a hash of the diff).
 """
 
@@ -269,12 +270,13 @@ def _scene_of_out(name: str) -> str:
 
 
 # --- running -------------------------------------------------------------------------------------
-def run_one(s: Scene, recipe: str, gps: bool) -> dict:
-    out = OUT / f"{s.name}-{recipe}{'-gps' if gps else ''}"
+def run_one(s: Scene, recipe: str, gps: bool, overrides: tuple[str, ...] = (), tag: str = "") -> dict:
+    out_root = ROOT / f"out-{tag}" if tag else OUT
+    out = out_root / f"{s.name}-{recipe}{'-gps' if gps else ''}"
     manifest = s.dir / ("scene.yaml" if gps else "scene-nogps.yaml")
     cmd = [crossview(), "run", str(REPO / "recipes" / f"{recipe}.yaml"), "--scene", str(manifest),
-           "--out", str(out), "--overwrite", "--no-rerun", "-q"]
-    OUT.mkdir(parents=True, exist_ok=True)
+           "--out", str(out), "--overwrite", "--no-rerun", "-q"] + [a for o in overrides for a in ("-s", o)]
+    out_root.mkdir(parents=True, exist_ok=True)
     if out.exists():  # a failed run must not leave the previous run's metrics.json to be read
         shutil.rmtree(out)
     t0 = time.perf_counter()
@@ -416,7 +418,13 @@ def main() -> int:
     ap.add_argument("--gps", action="store_true", help="runs with street/gps.csv (default: without)")
     ap.add_argument("--build-only", action="store_true", help="build (or refresh) the scenes, run nothing")
     ap.add_argument("--jobs", type=int, default=1, help="runs side by side (default 1; the machine has 2 cores)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="recipe override passed to every run as -s (needs --tag)")
+    ap.add_argument("--tag", default="", help="a variant's name: outputs go to data/cities/out-TAG/, rows under "
+                                              "the code state + TAG")
     args = ap.parse_args()
+    if args.set and not args.tag:
+        sys.exit("--set needs --tag (a variant must not overwrite the default runs)")
     if not RAW.is_dir():
         sys.exit(f"{RAW}: real city data not present (the 'shared' folder beside the repo); nothing to run")
     missing = sorted({str(c.path) for c in CITIES.values() if not c.path.is_file()})
@@ -456,7 +464,9 @@ def main() -> int:
         s, r = job
         with lock:
             state = code_state()  # what the run's process loads (others may commit meanwhile)
-        run = run_one(s, r, args.gps)
+            if args.tag:
+                state = (f"{state[0]}+{args.tag}", state[1])
+        run = run_one(s, r, args.gps, tuple(args.set), args.tag)
         row = row_of(s, stamps[s.name], r, args.gps, run)
         with lock:
             save([row], state)  # as it goes: an interrupted matrix keeps the runs it finished
