@@ -156,6 +156,52 @@ def test_segments_from_a_reprojected_dsm_match_the_original(feet_dsm_scene, tiny
     assert np.median(d) < 0.5
 
 
+def _reproject(raster, grid):
+    """``raster``'s first band put onto ``grid`` by rasterio alone (bilinear; NaN where it has no data)."""
+    from rasterio.transform import Affine
+    from rasterio.warp import Resampling, reproject
+
+    out = np.full((grid.height, grid.width), np.nan, np.float64)
+    reproject(np.where(raster.nodata_mask, np.nan, raster.data[0].astype(np.float64)), out,
+              src_transform=Affine(*raster.grid.transform), src_crs=raster.grid.crs, src_nodata=np.nan,
+              dst_transform=Affine(*grid.transform), dst_crs=grid.crs, dst_nodata=np.nan,
+              resampling=Resampling.bilinear)
+    return out
+
+
+def _shift_px(reference: np.ndarray, moved: np.ndarray) -> np.ndarray:
+    """(columns, rows) by which ``moved`` is ``reference`` displaced, from a least-squares fit of their
+    difference to the height gradients (first order), over pixels two away from any NaN in either."""
+    from scipy import ndimage as ndi
+
+    inner = ndi.binary_erosion(np.isfinite(reference) & np.isfinite(moved), iterations=2)
+    d_row, d_col = np.gradient(np.where(np.isfinite(reference), reference, 0.0))
+    design = np.column_stack([d_col[inner], d_row[inner]])
+    return -np.linalg.lstsq(design, (moved - reference)[inner], rcond=None)[0]
+
+
+def test_the_shift_estimate_sees_a_quarter_pixel(tiny):
+    from dataclasses import replace
+
+    original = read_raster(tiny / "overview/dsm.tif")
+    a, b, c, d, e, f = original.grid.transform
+    moved = replace(original, grid=replace(original.grid, transform=(a, b, c + 0.25 * a, d, e, f + 0.1 * e)))
+    shift = _shift_px(_reproject(original, original.grid), _reproject(moved, original.grid))
+    assert shift == pytest.approx([0.25, 0.1], abs=0.01)
+
+
+@pytest.mark.parametrize("crs, resolution", [("EPSG:26917", 0.6), (FEET_CRS, 0.5 * FT_PER_M)])
+def test_a_dsm_in_another_crs_keeps_its_place_to_a_hundredth_of_a_pixel(tiny, tmp_path, crs, resolution):
+    """No half-pixel or grid-origin shift on the way in: the DSM as the scene reads it (written in
+    another CRS, reprojected onto the scene grid) against the original put straight onto that grid."""
+    root = _copy(tiny, tmp_path / "s")
+    _warp_file(root / "overview/dsm.tif", crs, resolution, "bilinear")
+    dsm = load_raster(load_scene(root), "dsm")
+    direct = _reproject(read_raster(tiny / "overview/dsm.tif"), dsm.grid)
+    shift = _shift_px(direct, np.where(dsm.nodata_mask, np.nan, dsm.data[0].astype(np.float64)))
+    assert np.abs(shift).max() < 0.01, shift
+
+
 def test_without_a_dsm_the_label_map_defines_the_grid(tiny, tmp_path):
     root = _copy(tiny, tmp_path / "s")
     manifest = root / "scene.yaml"
