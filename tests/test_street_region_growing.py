@@ -9,9 +9,12 @@ from pydantic import ValidationError
 from plugins.street_region_growing import RegionGrowing
 from toolkit.errors import StageError
 from toolkit.io.cloud import write_ply
-from toolkit.observe import DebugLines, DebugPoints, NullObserver
+from toolkit.observe import DebugLines, DebugPoints, DebugScalar, NullObserver
 from toolkit.scene import load_scene, write_manifest
+from toolkit.street.clock import STEP_SHARES
+from toolkit.street.params import nested_groups
 from toolkit.street.score import angle_deg, found_up, score_segments
+from toolkit.street.split import SplitConfig
 from toolkit.street.toy import toy_street
 from toolkit.types import StreetSegments
 
@@ -146,10 +149,30 @@ def test_params_validation():
     with pytest.raises(ValidationError):
         RegionGrowing.from_config({"facade_angle_deg": 95})
     p = RegionGrowing.Params()
-    assert (p.knn, p.facade_angle_deg, p.facade_neighbour_fraction, p.ground_angle_deg, p.min_diameter_m) == (
+    assert (p.knn, p.facade.angle_deg, p.facade.neighbour_fraction, p.ground_angle_deg, p.min_diameter_m) == (
         20, 75.0, 0.75, 15.0, 5.0)
     for name, field in RegionGrowing.Params.model_fields.items():
         assert field.description, name
+    for group in nested_groups(RegionGrowing.Params).values():
+        for name, field in group.model_fields.items():
+            assert field.description and len(field.description) <= 120, name
+
+
+def test_old_flat_keys_read_as_their_group():
+    old = {"split_window_m": 2.0, "facade_angle_deg": 70, "multiscale_knn": [10, 20], "vertical_bin_deg": 3,
+           "merge_gap_m": 1.5, "absorb_hops": 0, "boundary_max_points": 50, "smooth_angle_deg": 12}
+    p = RegionGrowing.Params(**old)
+    assert p == RegionGrowing.Params(
+        split={"window_m": 2.0}, facade={"angle_deg": 70}, multiscale={"knn": [10, 20]}, vertical={"bin_deg": 3},
+        merge={"gap_m": 1.5}, absorb={"hops": 0}, boundary={"max_points": 50}, growing={"smooth_angle_deg": 12})
+    assert RegionGrowing.Params(split_bin_m=1.0, split={"window_m": 2.0}).split.model_dump() == {
+        **SplitConfig().model_dump(), "window_m": 2.0, "bin_m": 1.0}
+    with pytest.raises(ValidationError, match="split_window_m and split.window_m both given"):
+        RegionGrowing.Params(split_window_m=2.0, split={"window_m": 3.0})
+    with pytest.raises(ValidationError, match="split_windw_m"):  # a typo is rejected under its own name
+        RegionGrowing.Params(split_windw_m=2.0)
+    with pytest.raises(ValidationError, match=r"split\.window_m"):  # bounds are checked under the new key
+        RegionGrowing.Params(split_window_m=-1.0)
 
 
 def test_scene_entry_point(tmp_path, toy):
@@ -178,8 +201,11 @@ class RecordingObserver(NullObserver):
 def test_debug_payloads_only_when_wanted(toy):
     obs = RecordingObserver()
     RegionGrowing().segment(toy.points[::4], obs)
-    kinds = {name: type(v) for name, v in obs.calls}
+    kinds = {name: type(v) for name, v in obs.calls if not name.startswith("timings/")}
     assert kinds == {"raw": DebugPoints, "vertical": DebugLines, "facade": DebugPoints, "segments": DebugPoints}
+    timings = {name: v for name, v in obs.calls if name.startswith("timings/")}
+    assert list(timings) == [f"timings/{step}" for step in STEP_SHARES]  # every step, in order, once
+    assert all(isinstance(v, DebugScalar) and v.value >= 0 for v in timings.values())
     seg = dict(obs.calls)["segments"]
     assert len(seg.class_ids) == len(seg.xyz)
 
@@ -233,3 +259,16 @@ def test_ground_only_gives_empty_segments_with_warning():
     assert (seg.point_labels >= -2).all() and (seg.point_labels < 0).all() and (seg.carrier == -1).all()
     assert seg.centroids.shape == (0, 2) and seg.boundary_xy == ()
     assert angle_deg(np.abs(found_up(seg)), np.abs(rot @ [0, 0, 1.0])) < 1.0
+
+
+def test_stages_verbose_lists_groups_field_by_field(capsys):
+    from toolkit.cli import main
+
+    assert main(["stages", "-v"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    keys = {line.split()[0] for line in lines if line.startswith("    ")}
+    assert {"split", "split.window_m", "vertical.min_support", "growing.graph_knn", "scale.max_deviation",
+            "route_prior.window_m"} <= keys
+    assert not any("Config(" in line for line in lines)  # no group printed as one repr
+    window = next(line for line in lines if line.split()[:1] == ["split.window_m"])
+    assert "= 0.0" in window and "façade top" in window

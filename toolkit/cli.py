@@ -79,10 +79,28 @@ def cmd_stages(args: argparse.Namespace) -> int:
         doc = (cls.__doc__ or "").strip().splitlines()
         print(f"{cls.key():26s} {doc[0] if doc else ''}")
         if args.verbose:
-            for fname, f in cls.Params.model_fields.items():
-                default = f.default if f.default_factory is None else f.default_factory()
-                print(f"    {fname:28s} = {default!r:12}  {f.description or ''}")
+            rows = _param_rows(cls.Params)
+            width = max([28] + [len(key) for key, _, _ in rows])
+            for key, default, description in rows:
+                value = "" if default is None else f"= {default:12}"
+                print(f"    {key:{width}s} {value:14s}  {description}")
     return 0
+
+
+def _param_rows(model: type, prefix: str = "") -> list[tuple[str, str | None, str]]:
+    """(dotted key, default repr, description) per parameter; a nested group (refine's ``scale``,
+    unary's ``route_prior``) is a row without default, followed by its fields as ``group.field``."""
+    from pydantic import BaseModel
+
+    rows: list[tuple[str, str | None, str]] = []
+    for fname, f in model.model_fields.items():
+        default = f.default if f.default_factory is None else f.default_factory()
+        if isinstance(default, BaseModel):
+            rows.append((prefix + fname, None, f.description or ""))
+            rows += _param_rows(type(default), f"{prefix}{fname}.")
+        else:
+            rows.append((prefix + fname, repr(default), f.description or ""))
+    return rows
 
 
 def cmd_demo(args: argparse.Namespace) -> int:

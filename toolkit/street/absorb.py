@@ -13,6 +13,19 @@ wall stay out: clutter is rarely linked to a wall by a chain of façade points w
 from __future__ import annotations
 
 import numpy as np
+from pydantic import Field
+
+from toolkit.street.params import StreetConfig
+
+
+class AbsorbConfig(StreetConfig):
+    """Absorption of leftover façade points (see ``absorb_leftovers``)."""
+
+    hops: int = Field(3, ge=0, description="leftover façade points join a neighbour segment whose normal "
+                                           "agrees, through up to this many graph links (0 = off)")
+    link_m: float = Field(1.0, gt=0, description="absorption follows graph links no longer than this (3D, metres)")
+    angle_deg: float = Field(
+        10.0, gt=0, lt=90, description="max angle between the normals of a leftover point and its absorbing neighbour")
 
 
 def absorb_leftovers(labels: np.ndarray, graph: np.ndarray, index: np.ndarray, n_points: int,

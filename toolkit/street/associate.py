@@ -3,10 +3,29 @@ and the per-segment ground statistics later stages use (median height, median no
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
 import numpy as np
 from scipy.spatial import cKDTree
 
 from toolkit.threads import thread_budget
+
+if TYPE_CHECKING:
+    from toolkit.street.segments import FacadeSegments
+
+GROUND_STATS_POINTS = 500_000  # per-segment ground medians from at most about this many points
+
+
+@dataclass(frozen=True)
+class Association:
+    """Per analysis point: labels (M,) int32 segment / -1 ground / -2 other, carrier (M,) int32 the
+    segment it moves with (-1: none); per segment: ground_z (S,) and ground_normal (S,3), levelled."""
+
+    labels: np.ndarray
+    carrier: np.ndarray
+    ground_z: np.ndarray
+    ground_normal: np.ndarray
 
 
 def decimate_xy(xy: np.ndarray, labels: np.ndarray, cell_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -96,3 +115,25 @@ def ground_statistics(z: np.ndarray, normals_up: np.ndarray, carrier: np.ndarray
     normal[bad] = (0.0, 0.0, 1.0)
     normal[~bad] /= norm[~bad, None]
     return ground_z, normal
+
+
+def associate(points: np.ndarray, normals_up: np.ndarray, rotation: np.ndarray, segments: FacadeSegments,
+              ground_angle_deg: float, radius_m: float) -> Association:
+    """Labels, carriers and ground statistics of the analysis cloud ``points`` (M,3) with upward
+    ``normals_up`` (M,3) float32: ground within ``ground_angle_deg`` of vertical, every point carried
+    by the nearest segment within ``radius_m`` (2D); ``rotation`` levels the analysis frame."""
+    seg_idx, seg_lab = segments.index, segments.labels
+    ground = normals_up @ rotation[2].astype(np.float32) > np.cos(np.radians(ground_angle_deg))
+    labels = np.full(len(points), -2, dtype=np.int32)
+    labels[ground] = -1
+    labels[seg_idx] = seg_lab
+    is_seg_point = np.zeros(len(points), dtype=bool)
+    is_seg_point[seg_idx] = True  # they carry themselves: no search
+    carrier = nearest_segment(points, rotation[:2], segments.xy, seg_lab, radius_m, skip=is_seg_point)
+    carrier[seg_idx] = seg_lab
+    del is_seg_point
+    g_idx = np.flatnonzero(ground)[::max(1, int(ground.sum()) // GROUND_STATS_POINTS)]
+    ground_z, ground_normal = ground_statistics(points[g_idx] @ rotation[2],
+                                                normals_up[g_idx] @ rotation.T.astype(np.float32),
+                                                carrier[g_idx], segments.count)
+    return Association(labels, carrier, ground_z, ground_normal)

@@ -15,12 +15,47 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from pydantic import Field, model_validator
 from scipy.spatial import cKDTree
 
-from toolkit.street.normals import neighbourhood_covariance, symmetric_eigenvalues
+from toolkit.street.normals import build_tree, coordinate_columns, neighbourhood_covariance, symmetric_eigenvalues
+from toolkit.street.params import StreetConfig
 from toolkit.threads import map_in_order
 
 CHUNK = 1 << 16
+
+
+class FacadeConfig(StreetConfig):
+    """The façade rule (see ``facade_points``)."""
+
+    angle_deg: float = Field(75.0, gt=0, lt=90, description="façade: normal more than this from vertical (degrees)")
+    neighbour_fraction: float = Field(
+        0.75, ge=0, lt=1, description="façade: more than this share of the k neighbours pass the angle test")
+
+
+class MultiscaleConfig(StreetConfig):
+    """The façade rule voted over several neighbourhood sizes."""
+
+    knn: list[int] | None = Field(
+        None, description="optional several k (e.g. [10, 20, 30]): façade when ≥ multiscale.min_votes scales agree")
+    min_votes: int = Field(2, ge=1, description="scales that must call a point façade")
+
+    @model_validator(mode="after")
+    def _scales(self) -> MultiscaleConfig:
+        if self.knn is not None:
+            if len(self.knn) == 0 or min(self.knn) < 3:
+                raise ValueError("multiscale.knn must list k values ≥ 3")
+            if self.min_votes > len(self.knn):
+                raise ValueError("multiscale.min_votes exceeds the number of scales")
+        return self
+
+    def scales(self, knn: int) -> list[int]:
+        """The neighbourhood sizes voting (ascending; ``[knn]`` without multiscale)."""
+        return sorted(set(self.knn)) if self.knn else [knn]
+
+    def votes(self) -> int:
+        """Scales that must agree (1 without multiscale)."""
+        return self.min_votes if self.knn else 1
 
 
 @dataclass(frozen=True)
@@ -68,3 +103,11 @@ def facade_points(points: np.ndarray, tree: cKDTree, columns: tuple[np.ndarray, 
     if not keep_idx:
         return Facade(np.zeros(0, np.int32), np.zeros((0, graph_k), np.int32), np.zeros(0, np.float32))
     return Facade(np.concatenate(keep_idx), np.concatenate(keep_graph), np.concatenate(keep_curv))
+
+
+def find_facade(points: np.ndarray, normals_per_scale: list[np.ndarray], knn: int, up: np.ndarray,
+                facade: FacadeConfig, multiscale: MultiscaleConfig, graph_k: int) -> Facade:
+    """``facade_points`` of the analysis cloud ``points`` (M,3), its KD-tree built here."""
+    return facade_points(points, build_tree(points), coordinate_columns(points), normals_per_scale,
+                         multiscale.scales(knn), knn, up, facade.angle_deg, facade.neighbour_fraction,
+                         multiscale.votes(), graph_k)

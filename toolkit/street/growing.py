@@ -16,12 +16,26 @@ The graph is built in row chunks as int32 CSR arrays.
 from __future__ import annotations
 
 import numpy as np
-
-from toolkit.arrays import sorted_unique
+from pydantic import Field
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
 
+from toolkit.arrays import sorted_unique
+from toolkit.street.params import StreetConfig
+
 CHUNK = 1 << 16
+
+
+class GrowingConfig(StreetConfig):
+    """Region growing over the façade kNN graph (see ``grow_regions``); its keys were flat unprefixed."""
+
+    flat_prefix = ""
+    graph_knn: int = Field(10, ge=1, description="links each façade point to at most its nearest graph_knn (≤ knn)")
+    smooth_angle_deg: float = Field(10.0, gt=0, lt=90, description="max angle between neighbour normals (degrees)")
+    seed_curvature_max: float = Field(
+        0.1, gt=0, le=1 / 3, description="points with surface variation above this do not propagate")
+    bend_split_angle_deg: float = Field(30.0, gt=0, le=180, description="split segments whose horizontal normals "
+                                                                        "spread more than this (degrees; 180 = off)")
 
 
 def _edge_chunks(indptr: np.ndarray, indices: np.ndarray):

@@ -17,10 +17,24 @@ Merges are transitive (connected components of the "may merge" graph).
 from __future__ import annotations
 
 import numpy as np
+from pydantic import Field
 from scipy.spatial import cKDTree
 
 from toolkit.street.associate import decimate_xy, group_quantile
 from toolkit.street.growing import components
+from toolkit.street.params import StreetConfig
+
+
+class MergeConfig(StreetConfig):
+    """Merging at corners and across gaps (keyword arguments of ``merge_segments``)."""
+
+    contact_m: float = Field(1.0, ge=0, description="merge segments whose façade points come this close (2D) "
+                                                    "at equal wall height (0 = off)")
+    gap_m: float = Field(0.0, ge=0, description="merge pieces of one wall (parallel, in line) up to this far apart "
+                                                "at equal height (m; 0 = off)")
+    height_tol_m: float = Field(1.0, gt=0, description="max difference of wall-top heights where segments meet (m)")
+    min_corner_deg: float = Field(
+        45.0, ge=0, le=90, description="merge only segments whose façades turn by at least this (degrees; a corner)")
 
 
 def merge_segments(xy: np.ndarray, z: np.ndarray, azimuth: np.ndarray, labels: np.ndarray, contact_m: float,

@@ -25,6 +25,12 @@ def open3d_normals(points: np.ndarray, knn: int) -> np.ndarray:
     return normals
 
 
+def orient_upwards(normals: np.ndarray, up: np.ndarray) -> None:
+    """Flip, in place, the (M,3) float32 ``normals`` pointing against ``up`` (3,)."""
+    up32 = up.astype(np.float32)
+    normals *= np.where(normals @ up32 < 0, np.float32(-1), np.float32(1))[:, None]
+
+
 def build_tree(points: np.ndarray) -> cKDTree:
     # unbalanced sliding-midpoint trees build ~3x faster and query as fast on Morton-sorted data
     return cKDTree(points, balanced_tree=False, compact_nodes=False)

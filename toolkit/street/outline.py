@@ -3,8 +3,18 @@
 from __future__ import annotations
 
 import numpy as np
+from pydantic import Field
+
+from toolkit.street.params import StreetConfig
 
 N_DIRECTIONS = 32  # diameter as the largest width over 32 directions: under 0.5 % short
+
+
+class BoundaryConfig(StreetConfig):
+    """Boundary points of each segment (keyword arguments of ``boundary_points``)."""
+
+    cell_m: float = Field(0.25, gt=0, description="one mean point per cell of this size (m)")
+    max_points: int = Field(2000, ge=10, description="boundary points kept per segment at most")
 
 
 def relabel_by_size(labels: np.ndarray) -> np.ndarray:

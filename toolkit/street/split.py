@@ -18,9 +18,11 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
+from pydantic import Field
 from scipy.ndimage import maximum_filter1d
 
 from toolkit.street.associate import group_median
+from toolkit.street.params import StreetConfig
 
 TOP_RANK = 3  # the façade top of a bin: its 3rd highest point (robust to two high outliers)
 # Doubt taken off a fitted step: the fits' RMS residuals and their slopes (per bin) times these.
@@ -28,6 +30,23 @@ TOP_RANK = 3  # the façade top of a bin: its 3rd highest point (robust to two h
 # tests/test_street_split.py, 0.5 / 1.0 cut no ridge up to 56° pitch and find 7/8 steps of 0.35 m.
 RMS_WEIGHT = 0.5
 SLOPE_WEIGHT = 1.0
+
+
+class SplitConfig(StreetConfig):
+    """Terrace split (the keyword arguments of ``split_terraces``)."""
+
+    window_m: float = Field(0.0, ge=0, description="length compared either side of each place along a "
+                                                   "façade top (m; 0 = no split; 2.0 for terraced cities)")
+    bin_m: float = Field(0.5, gt=0, description="profile bin length along the façade (m)")
+    top_step_m: float = Field(
+        0.3, ge=0, description="cut where the façade top (eaves) steps by at least this (m; 0 = off)")
+    setback_m: float = Field(
+        0.0, ge=0, description="cut where the façade plane steps back by at least this (m; 0 = off)")
+    turn_deg: float = Field(
+        0.0, ge=0, description="cut where the façade direction turns by at least this (degrees; 0 = off)")
+    min_end_m: float = Field(
+        5.0, ge=0, description="no cut closer than this to a segment's end, where façade tops droop (m)")
+    min_gap_m: float = Field(5.0, ge=0, description="cuts at least this far apart (m; the stronger step wins)")
 
 
 def split_terraces(xyz: np.ndarray, azimuth: np.ndarray, labels: np.ndarray, bin_m: float, window_m: float,
@@ -90,7 +109,18 @@ def split_terraces(xyz: np.ndarray, azimuth: np.ndarray, labels: np.ndarray, bin
     peak = np.flatnonzero((score >= 1.0) & (score == maximum_filter1d(score, size=2 * w + 1, mode="constant")))
     if len(peak) == 0:
         return labels
-    at = peak + w  # first bin after each candidate cut
+    piece = np.cumsum(_cuts(score, peak + w, w, start, n_bins, total, m, g))  # cuts up to each bin: a piece id
+    later = piece[gbin] > piece[start[lab]]  # not in its segment's first piece
+    out = labels.copy()
+    rows = np.flatnonzero(sel)[later]
+    out[rows] = (int(labels.max()) + piece[gbin[later]]).astype(np.int32)
+    return out
+
+
+def _cuts(score: np.ndarray, at: np.ndarray, w: int, start: np.ndarray, n_bins: np.ndarray, total: int,
+          m: int, g: int) -> np.ndarray:
+    """(total,) int64, 1 at the first bin after each cut: of the candidates ``at`` (the bin after a
+    peak of ``score``), those at least ``m`` bins from their segment's ends, ``g`` bins apart."""
     # façade tops often droop at a segment's ends (corners, occlusion): no cut within min_end_m of
     # them; cuts at least min_gap_m apart, the stronger first (a few vectorised greedy rounds; a
     # tiny rising offset breaks ties, e.g. the plateaus that window medians make, to one cut)
@@ -106,12 +136,7 @@ def split_terraces(xyz: np.ndarray, azimuth: np.ndarray, labels: np.ndarray, bin
         strength[maximum_filter1d(best.astype(np.int8), size=reach, mode="constant") > 0] = 0
     if g == 0:
         cut[at[room]] = 1
-    piece = np.cumsum(cut)  # global count of cuts up to each bin: unique per piece after a cut
-    later = piece[gbin] > piece[start[lab]]  # not in its segment's first piece
-    out = labels.copy()
-    rows = np.flatnonzero(sel)[later]
-    out[rows] = (int(labels.max()) + piece[gbin[later]]).astype(np.int32)
-    return out
+    return cut
 
 
 def _step(values: np.ndarray, w: int) -> np.ndarray:

@@ -21,7 +21,21 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from pydantic import Field
 from scipy.spatial import cKDTree
+
+from toolkit.errors import StageError
+from toolkit.street.params import StreetConfig
+
+
+class VerticalConfig(StreetConfig):
+    """The vertical from the normals (see ``find_vertical``)."""
+
+    bin_deg: float = Field(2.0, gt=0, le=10, description="sphere histogram bin size for the vertical (degrees)")
+    min_support: float = Field(
+        0.2, ge=0, le=1, description="min share of normals parallel or perpendicular (±5°) to the found vertical")
+    cell_m: float = Field(4.0, gt=0, description="cell size of the façade-above-ground sign test (m)")
+    sample: int = Field(100_000, ge=1000, description="normals sampled for the vertical (count)")
 
 
 @dataclass(frozen=True)
@@ -166,3 +180,14 @@ def estimate_up(points: np.ndarray, normals: np.ndarray, *, bin_deg: float = 2.0
     close = [f for f in found if f[0] >= tie_share * top]
     _, _, support, up, agreement, n_cells = min(close, key=lambda f: f[1])
     return Vertical(up=up, support=support, agreement=agreement, cells=n_cells, candidates=len(cands))
+
+
+def find_vertical(points: np.ndarray, normals: np.ndarray, cfg: VerticalConfig, seed: int, who: str) -> Vertical:
+    """``estimate_up`` with ``cfg``; a ``StageError`` (one line) when the normals hold no vertical."""
+    vertical = estimate_up(points, normals, bin_deg=cfg.bin_deg, cell_m=cfg.cell_m, sample=cfg.sample, seed=seed)
+    if vertical is None or vertical.support < cfg.min_support:
+        support = 0.0 if vertical is None else vertical.support
+        raise StageError(f"{who}: no vertical structure: normals have no dominant orientation "
+                         f"(support {support:.2f} < vertical.min_support {cfg.min_support}; "
+                         f"a street frame far from metric does this: set street_scale)")
+    return vertical
