@@ -6,10 +6,7 @@ The folder is written beside ``out`` under a temporary name and renamed when com
 
 from __future__ import annotations
 
-import contextlib
-import logging
 import shutil
-import time
 from pathlib import Path
 from typing import Any
 
@@ -17,18 +14,11 @@ import numpy as np
 
 from toolkit.errors import CrossviewError
 from toolkit.synth.config import PRESETS, SynthConfig, config_for
+from toolkit.synth.timing import timed
 from toolkit.synth.world import World
 
 __all__ = ["PRESETS", "SynthConfig", "build_scene", "generate", "generate_from_city"]
 
-log = logging.getLogger("toolkit.synth")
-
-
-@contextlib.contextmanager
-def timed(what: str):
-    t0, c0 = time.perf_counter(), time.process_time()
-    yield
-    log.info("%-28s %6.2f s (cpu %.2f s)", what, time.perf_counter() - t0, time.process_time() - c0)
 
 
 def generate(preset: str, seed: int, out: Path, **overrides: Any) -> Path:

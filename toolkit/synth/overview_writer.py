@@ -37,7 +37,7 @@ class OverviewResult:
 
 
 def write_overview(world: World, cfg: SynthConfig, root: Path, rngs: dict) -> OverviewResult:
-    from toolkit.synth.generate import timed
+    from toolkit.synth.timing import timed
 
     grid = make_grid(world, cfg)
     with timed("  render"):

@@ -53,7 +53,7 @@ def write_street(world: World, track: Track, cfg: SynthConfig, root: Path, ov, r
     density, lidar_density = VoxelFilter(cfg.point_spacing_m), VoxelFilter(cfg.lidar_spacing_m)
     expected = _expected_points(track, cfg)
     every = max(1, expected // PREVIEW_POINTS)
-    from toolkit.synth.generate import timed
+    from toolkit.synth.timing import timed
 
     for caps in chunks(track, cfg):
         with timed(f"  capture {len(caps)} positions"):
