@@ -57,6 +57,18 @@ def test_run_quiet_keeps_the_unreliable_verdict(fake_default_registry, recipe, m
     assert capsys.readouterr() == ("", "registration unreliable: façades off\n")
 
 
+def test_demo_quiet_prints_nothing_but_errors(fake_default_registry, mini_scene, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "recipes").mkdir()
+    (tmp_path / "recipes/demo.yaml").write_text(FAKE_RECIPE)
+    shutil.copytree(mini_scene, tmp_path / "data/demo")
+    assert main(["demo", "-q"]) == 0
+    assert capsys.readouterr() == ("", "")
+    assert (tmp_path / "out/demo/metrics.json").is_file()
+    assert main(["demo"]) == 0
+    assert "demo finished" in capsys.readouterr().err
+
+
 # --- report links ----------------------------------------------------------------------------------
 def _hrefs(page: str) -> set[str]:
     return {h for h in re.findall(r'href="([^"]+)"', page) if not h.startswith("figures/")}

@@ -44,9 +44,11 @@ def run_demo(preset: str = "campus", seed: int = 0, quiet: bool = False) -> int:
     if not (scene_dir / "scene.yaml").is_file():
         from toolkit.synth.generate import generate
 
-        console.print(f"[bold]synthesising[/] the built-in '{preset}' scene (seed {seed}) into {scene_dir}")
+        if not quiet:
+            console.print(f"[bold]synthesising[/] the built-in '{preset}' scene (seed {seed}) into {scene_dir}")
         generate(preset, seed, scene_dir)
-        console.print(f"  done in {time.perf_counter() - t0:.1f} s")
+        if not quiet:
+            console.print(f"  done in {time.perf_counter() - t0:.1f} s")
     recipe_path = Path("recipes/demo.yaml")
     if not recipe_path.is_file():
         recipe_path = ROOT / "recipes" / "demo.yaml"
@@ -58,8 +60,9 @@ def run_demo(preset: str = "campus", seed: int = 0, quiet: bool = False) -> int:
         raise CrossviewError("demo: no stage of recipes/demo.yaml is available")
     res = run_recipe(recipe_path, scene=scene_dir, out=Path("out/demo"), overwrite=True,
                      observer=ProgressObserver(quiet=quiet), recipe=recipe)
-    print_summary(res)
-    console.print(f"demo finished in {time.perf_counter() - t0:.1f} s")
+    if not quiet:  # -q: as crossview run, only errors and the verdict below
+        print_summary(res)
+        console.print(f"demo finished in {time.perf_counter() - t0:.1f} s")
     line = verdict_line(res.assessment)
     if line is None:
         return 0
