@@ -246,3 +246,20 @@ def test_cli_run_shows_the_note_unless_quiet(tiny, tmp_path, capsys):
     _raster.cache_clear()  # the note is given when the file is read
     assert main(args + [str(tmp_path / "b"), "-q"]) == 0
     assert "note" not in capsys.readouterr().err
+
+
+def test_the_note_reaches_run_log_and_metrics_in_every_run(tiny, tmp_path):
+    """The reader's note is in run.log and metrics.json, and the same in a second run in the process
+    (the raster is then cached: the note is replayed, metrics.json stays the same bytes)."""
+    import json
+
+    root = _copy(tiny, tmp_path / "s")
+    _upsample_file(root / "overview/ortho.tif", 2)
+    recipe = tmp_path / "ov.yaml"
+    recipe.write_text("recipe: 1\nname: ov\nsteps:\n  overview: {use: overview.dsm_tophat}\n")
+    for out in ("a", "b"):
+        assert main(["run", str(recipe), "--scene", str(root), "--no-rerun", "-q", "--out", str(tmp_path / out)]) == 0
+    notes = json.loads((tmp_path / "a/metrics.json").read_text())["notes"]
+    assert len(notes) == 1 and "ortho.tif" in notes[0] and "resampled (bilinear)" in notes[0]
+    assert (tmp_path / "a/metrics.json").read_bytes() == (tmp_path / "b/metrics.json").read_bytes()
+    assert f"note: {notes[0]}" in (tmp_path / "b/run.log").read_text().splitlines()

@@ -120,12 +120,19 @@ def _version() -> str:
 
 class OneLineHandler(logging.Handler):
     """Notes and warnings of the ``crossview.*`` loggers (readers: a raster reprojected, a float32
-    cloud) as one stderr line each."""
+    cloud) as one stderr line each, each line once per command (a file read by several steps)."""
+
+    def __init__(self, level: int = logging.NOTSET) -> None:
+        super().__init__(level)
+        self.shown: set[str] = set()
 
     def emit(self, record: logging.LogRecord) -> None:
         try:
             level = "note" if record.levelno < logging.WARNING else record.levelname.lower()
-            print(f"crossview: {level}: {' '.join(record.getMessage().split())}", file=sys.stderr)
+            line = f"crossview: {level}: {' '.join(record.getMessage().split())}"
+            if line not in self.shown:
+                self.shown.add(line)
+                print(line, file=sys.stderr)
         except Exception:
             self.handleError(record)
 

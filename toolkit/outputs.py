@@ -80,8 +80,9 @@ def coverage(results: dict[str, Any]) -> dict[str, Any] | None:
 
 
 def write_outputs(out: Path, plan, results: dict[str, Any], timings: dict[str, float],
-                  warnings: list[str], assessment=None) -> None:
-    """``assessment``: the run's ``toolkit.status.Assessment`` (assessed here when None)."""
+                  warnings: list[str], assessment=None, notes: list[str] = ()) -> None:
+    """``assessment``: the run's ``toolkit.status.Assessment`` (assessed here when None); ``notes``:
+    what the readers noted (e.g. a raster resampled onto the scene grid)."""
     from toolkit.status import assess
 
     if assessment is None:
@@ -123,19 +124,22 @@ def write_outputs(out: Path, plan, results: dict[str, Any], timings: dict[str, f
     if results.get("transforms") is not None:
         metrics_values["segment_scale"] = segment_scales(results["transforms"])
     metrics_values["warnings"] = list(warnings)
+    metrics_values["notes"] = list(notes)
     dump_json(out / "metrics.json", metrics_values)
     # timings vary run to run: kept apart so metrics.json is reproducible byte for byte
     dump_json(out / "timings.json", {k: round(v, 3) for k, v in timings.items()})
     (out / "recipe.yaml").write_text(plan.recipe.to_yaml())
-    _write_log(out / "run.log", plan, timings, warnings, assessment)
+    _write_log(out / "run.log", plan, timings, warnings, assessment, notes)
     _write_report(out, plan, results, timings, warnings, assessment)
 
 
-def _write_log(path: Path, plan, timings: dict[str, float], warnings: list[str], assessment) -> None:
+def _write_log(path: Path, plan, timings: dict[str, float], warnings: list[str], assessment,
+               notes: list[str] = ()) -> None:
     lines = [f"crossview run {plan.recipe.name} on {plan.scene.root} ({plan.scene.crs})",
              f"finished {time.strftime('%Y-%m-%d %H:%M:%S')} on {platform.node()}"]
     for spec, _ in plan.stages:
         lines.append(f"step {spec.name:9s} {spec.use:24s} {timings.get(spec.name, float('nan')):8.2f} s")
+    lines += [f"note: {n}" for n in notes]
     lines += [f"warning: {w}" for w in warnings]
     lines.append(f"status: {assessment.status} (confidence {assessment.confidence:.2f})")
     lines += [f"reason: {r}" for r in assessment.reasons]

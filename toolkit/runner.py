@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import os
 import shutil
 import time
@@ -179,6 +181,36 @@ def execute(plan: Plan, obs: Observer | None = None,
     return results, timings
 
 
+class _LogCollector(logging.Handler):
+    """The readers' notes (INFO) and warnings logged on ``crossview.*`` during a run, in order."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.INFO)
+        self.notes: list[str] = []
+        self.warnings: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        kept = self.warnings if record.levelno >= logging.WARNING else self.notes
+        message = " ".join(record.getMessage().split())
+        if message not in kept:  # a file read by several steps notes it each time
+            kept.append(message)
+
+
+@contextlib.contextmanager
+def collected_log():
+    """Collect ``crossview.*`` log messages for run.log and metrics.json (batch workers included)."""
+    logger = logging.getLogger("crossview")
+    handler, level = _LogCollector(), logger.level
+    logger.addHandler(handler)
+    if logger.getEffectiveLevel() > logging.INFO:
+        logger.setLevel(logging.INFO)
+    try:
+        yield handler
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+
+
 def _prepare_out(out: Path, overwrite: bool) -> Path:
     if out.exists() and not overwrite:
         raise CrossviewError(f"{out}: output folder already exists (pass --overwrite to replace it)")
@@ -224,13 +256,14 @@ def run_recipe(recipe_path: str | Path, scene: str | Path | None = None, out: st
             rerun_obs = RerunObserver(target, max_points=int(recipe.log.get("max_points", 200_000)))
             rerun_obs.log_text("recipe", f"```yaml\n{recipe.to_yaml()}\n```")
             obs = MultiObserver(obs, rerun_obs)
-        results, timings = execute(plan, obs, overlap)
+        with collected_log() as logged:
+            results, timings = execute(plan, obs, overlap)
         if rerun_obs is not None:
             rerun_obs.close()
             rerun_obs = None
-        warnings = list(getattr(obs, "warnings", []))
+        warnings = list(getattr(obs, "warnings", [])) + logged.warnings
         assessment = assess(results, plan.scene)
-        write_outputs(tmp, plan, results, timings, warnings, assessment)
+        write_outputs(tmp, plan, results, timings, warnings, assessment, notes=logged.notes)
         if out_dir.exists():
             shutil.rmtree(out_dir)
         tmp.rename(out_dir)

@@ -16,6 +16,7 @@ import yaml
 
 from toolkit.errors import SceneError
 from toolkit.io.crs import check_metric_crs
+from toolkit.logcache import replaying_cache
 from toolkit.types import Grid, Raster, Scene, SceneFiles, SparseModel
 
 # manifest section → key → SceneFiles field
@@ -125,7 +126,7 @@ def _grid(path: Path, mtime: float, crs: str) -> Grid:
     return grid_in_crs(read_header(path).grid, crs, path)
 
 
-@functools.lru_cache(maxsize=8)
+@replaying_cache(maxsize=8)
 def _raster(path: Path, mtime: float, grid: Grid, resampling: str) -> Raster:
     from toolkit.io.raster import on_grid, read_header, read_raster, warp_raster
 
@@ -160,7 +161,7 @@ def load_dem(scene: Scene, who: str = "") -> Raster:
     return _raster(p, _mtime(p), grid, RESAMPLING["dem"])
 
 
-@functools.lru_cache(maxsize=4)
+@replaying_cache(maxsize=4)
 def _points(path: Path, mtime: float) -> np.ndarray:
     from toolkit.io.cloud import read_points
 
@@ -178,7 +179,7 @@ def load_points(scene: Scene, key: str = "street_cloud", who: str = "") -> np.nd
     return _points(p, _mtime(p))
 
 
-@functools.lru_cache(maxsize=1)
+@replaying_cache(maxsize=1)
 def _scaled_points(path: Path, mtime: float, scale: float) -> np.ndarray:
     pts = _points(path, mtime) / scale
     pts.setflags(write=False)
