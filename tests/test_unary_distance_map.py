@@ -243,7 +243,7 @@ def test_gps_pruned_candidates_are_infinite_and_survivors_obey_the_prior(tmp_pat
                                                    np.stack([np.sin(th), np.cos(th)], 1)], 1), x) + t
         assert np.linalg.norm(placed - prior.position[seg], axis=1).max() <= 15 + 1e-6
         turn = np.abs((th - prior.angle[seg] + np.pi) % (2 * np.pi) - np.pi)
-        assert np.degrees(turn).max() <= params.gps_angle_deg + 1e-6
+        assert np.degrees(turn).max() <= params.gps.angle_deg + 1e-6
 
 
 def test_gps_heading_orients_same_segment_labels(tmp_path, toy, solved):
@@ -270,14 +270,14 @@ def test_gps_radius_widens_where_the_local_fit_residual_is_large(tmp_path, toy):
     σ = 3 m) leave the σ-based radius."""
     import dataclasses
 
-    from toolkit.matching.gps import gps_prior
+    from toolkit.matching.gps import gps_prior, prior_radii
 
     clean = gps_prior(_scene(tmp_path / "clean", toy), toy.street)
     assert clean.fit_rms_m is not None and clean.fit_rms_m.shape == (len(toy.street),)
     assert np.all(3.0 * clean.fit_rms_m < 5.0 * 3.0)
     stage, fixed = DistanceMap(), DistanceMap(DistanceMap.Params(gps_radius_fit_sigmas=None))
     base = 5.0 * 3.0 + 5.0
-    assert np.allclose(stage._gps_radii(clean, len(toy.street)), base)
+    assert np.allclose(prior_radii(clean, len(toy.street), stage.params.gps), base)
 
     scene = _scene(tmp_path / "bent", toy)
     lines = scene.files.gps.read_text().splitlines()
@@ -287,11 +287,11 @@ def test_gps_radius_widens_where_the_local_fit_residual_is_large(tmp_path, toy):
     scene.files.gps.write_text("\n".join([lines[0]] + [",".join(r) for r in rows]) + "\n")
     bent = gps_prior(scene, toy.street)
     assert np.all(bent.fit_rms_m > 10.0)
-    radii = stage._gps_radii(bent, len(toy.street))
+    radii = prior_radii(bent, len(toy.street), stage.params.gps)
     assert np.allclose(radii, 3.0 * bent.fit_rms_m + 5.0) and np.all(radii > base + 9.0)
-    assert np.allclose(fixed._gps_radii(bent, len(toy.street)), base)
+    assert np.allclose(prior_radii(bent, len(toy.street), fixed.params.gps), base)
     explicit = DistanceMap(DistanceMap.Params(gps_radius_m=12.0))
-    assert np.allclose(explicit._gps_radii(dataclasses.replace(bent), len(toy.street)), 12.0)
+    assert np.allclose(prior_radii(dataclasses.replace(bent), len(toy.street), explicit.params.gps), 12.0)
 
 
 def test_gps_with_too_few_fixes_warns_and_falls_back_to_the_route_placement(tmp_path):
@@ -337,6 +337,59 @@ def test_params_are_validated():
         DistanceMap.Params(search="grid")
     with pytest.raises(ValidationError):
         DistanceMap.Params(trunc_px=5)
+
+
+def test_old_flat_keys_are_read_as_the_nested_keys():
+    from toolkit.matching.config import MatchingConfig
+
+    groups = {name: f.annotation for name, f in DistanceMap.Params.model_fields.items()
+              if isinstance(f.annotation, type) and issubclass(f.annotation, MatchingConfig)}
+    assert set(groups) == {"pose", "chamfer", "anchor", "prune", "gps", "free_space"}
+    n_keys = 0
+    for group, cls in groups.items():
+        for key, name in cls.flat_keys().items():
+            default = getattr(getattr(DistanceMap.Params(), group), name)
+            # another valid value: the other boolean, half a number, 7 for an unset one
+            value = (not default) if isinstance(default, bool) else 7.0 if default is None else type(default)(default / 2)
+            flat = DistanceMap.Params(**{key: value})
+            assert getattr(getattr(flat, group), name) == value, key
+            assert flat == DistanceMap.Params(**{group: {name: value}}), key
+            n_keys += 1
+    assert n_keys == 32  # every flat key of the groups (the other five stayed at the top)
+    p = DistanceMap.Params(gps_radius_m=12.0, anchor_spacing_m=2.0, free_space_weight=0.2, refine_top_k=3)
+    assert (p.gps.radius_m, p.anchor.spacing_m, p.free_space.weight, p.pose.refine_top_k) == (12.0, 2.0, 0.2, 3)
+    assert p.gps.angle_deg == 45.0  # the group's other fields keep their defaults
+    with pytest.raises(ValidationError, match="keep gps.radius_m"):
+        DistanceMap.Params(gps_radius_m=12.0, gps={"radius_m": 10.0})
+    with pytest.raises(ValidationError, match="gps.radius_m"):  # the error names the nested key
+        DistanceMap.Params(gps_radius_m=-1)
+
+
+def test_dotted_overrides_reach_the_nested_groups():
+    from pathlib import Path
+
+    from toolkit.recipe import load_recipe
+
+    dsm = Path(__file__).resolve().parents[1] / "recipes" / "dsm.yaml"
+
+    def params(*overrides: str):
+        return DistanceMap.from_config(load_recipe(dsm, overrides).step("unary").params).params
+
+    nested = params("steps.unary.params.gps.radius_m=20", "steps.unary.params.pose.refine_top_k=4")
+    assert (nested.gps.radius_m, nested.pose.refine_top_k) == (20.0, 4)
+    assert params("steps.unary.params.gps_radius_m=20", "steps.unary.params.refine_top_k=4") == nested
+
+
+def test_every_option_has_a_one_line_description():
+    from pydantic import BaseModel
+
+    fields = dict(DistanceMap.Params.model_fields)
+    for name, top in DistanceMap.Params.model_fields.items():
+        if isinstance(top.annotation, type) and issubclass(top.annotation, BaseModel):
+            fields.update({f"{name}.{key}": f for key, f in top.annotation.model_fields.items()})
+    assert len(fields) == 11 + 32 + 13  # the top level (7 groups among them), 6 groups' 32 options, route_prior's 13
+    for name, f in fields.items():
+        assert f.description and "\n" not in f.description and len(f.description) <= 120, name
 
 
 def test_debug_payloads(toy):

@@ -6,7 +6,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from plugins.unary_distance_map import DistanceMap, _near_gps_midpoint
+from plugins.unary_distance_map import DistanceMap
+from toolkit.matching.candidates import near_gps_midpoint, prune_pairs
 
 
 def _problem(seed: int, n_edges: int = 150, n_labels: int = 900):
@@ -20,7 +21,7 @@ def _problem(seed: int, n_edges: int = 150, n_labels: int = 900):
 
 
 def _all_pairs(stage: DistanceMap, a: dict) -> tuple[np.ndarray, np.ndarray]:
-    p, lp = stage.params, a["lp"]
+    p, lp = stage.params.prune, a["lp"]
     tol = (p.length_tolerance_m + p.length_tolerance_fraction * a["o_len"][None, :]
            + p.centroid_slack * (a["rho"][lp[:, 0]] + a["rho"][lp[:, 1]])[None, :])
     keep = np.abs(a["s_len"][:, None] - a["o_len"][None, :]) <= tol
@@ -37,7 +38,7 @@ def test_blockwise_prune_equals_the_all_pairs_test_in_row_major_order():
         want_e, want_l = _all_pairs(stage, a)
         assert 0 < len(want_e) < a["s_len"].size * a["o_len"].size  # the test keeps some, not all
         for rows in (1, 7, 64, 1000):
-            got_e, got_l = stage._prune(**a, rows_per_block=rows)
+            got_e, got_l = prune_pairs(**a, prune=stage.params.prune, rows_per_block=rows)
             np.testing.assert_array_equal(got_e, want_e)
             np.testing.assert_array_equal(got_l, want_l)
 
@@ -49,7 +50,7 @@ def test_prune_among_given_pairs_keeps_exactly_those_that_pass():
     E, L = a["s_len"].size, a["o_len"].size
     flat = np.sort(rng.choice(E * L, size=E * L // 3, replace=False))
     among = (flat // L, flat % L)
-    got_e, got_l = stage._prune(**a, among=among)
+    got_e, got_l = prune_pairs(**a, among=among, prune=stage.params.prune)
     want = set(zip(*(x.tolist() for x in _all_pairs(stage, a)))) & set(zip(among[0].tolist(), among[1].tolist()))
     assert list(zip(got_e.tolist(), got_l.tolist())) == sorted(want)
 
@@ -63,7 +64,7 @@ def test_pairs_near_the_gps_midpoint_contain_every_pair_the_exact_test_keeps():
     o_mid_world = rng.uniform(0, 2000, (n_labels, 2)) + [5.0e5, 5.7e6]
     window = rng.uniform(0, 25, n_labels)
     window[::97] = np.nan  # a label without a window never passes; it must not widen the search
-    e, lab = _near_gps_midpoint(prior, seg_radius, j, k, o_mid_world, window)
+    e, lab = near_gps_midpoint(prior, seg_radius, j, k, o_mid_world, window)
     assert np.all(np.diff(e * n_labels + lab) > 0)  # row-major, no repeats
     g_mid = (prior.position[j] + prior.position[k]) / 2
     exact = (np.linalg.norm(o_mid_world[None, :, :] - g_mid[:, None, :], axis=2)

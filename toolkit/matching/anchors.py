@@ -16,10 +16,30 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from pydantic import Field
 
 from toolkit.matching.atlas import SCALE, CropAtlas, _segment_mask, boundary_tangent_angle
 from toolkit.matching.chamfer import Pairs, ranges
+from toolkit.matching.config import MatchingConfig
 from toolkit.types import OverviewSegments
+
+
+class AnchorConfig(MatchingConfig):
+    """The anchored pose search of the data term (``search: anchor``)."""
+
+    flat_names = {"spacing_m": "anchor_spacing_m", "tolerance_px": "anchor_tolerance_px"}
+
+    spacing_m: float = Field(1.0, gt=0, description="outline sample spacing for anchored hypotheses (m)")
+    tolerance_px: float = Field(3.0, gt=0, description="an anchored hypothesis must put the other façade centre "
+                                                      "this close to its candidate's outline (px)")
+    max_hypotheses: int = Field(16, ge=1, description="anchored hypotheses scored per candidate (count)")
+    min_wall_share: float = Field(
+        0.3, ge=0, le=1, description="share of a segment's points its dominant straight wall needs to anchor hypotheses (0-1)")
+    rotation_window_from_extent: bool = Field(
+        True, description="widen the rotation window per candidate to asin((ρ_p + ρ_q) / centre-line length)")
+    rotation_window_max_deg: float = Field(
+        60.0, ge=0, le=180, description="cap on that widened window (a straight façade also fits its wall "
+                                        "turned by 180°; the cap keeps such flips out)")
 
 
 @dataclass(frozen=True)

@@ -13,10 +13,22 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from pydantic import Field
 from scipy.spatial import cKDTree
 
 from toolkit.matching.atlas import SCALE, CropAtlas
+from toolkit.matching.config import MatchingConfig
 from toolkit.threads import map_in_order
+
+
+class ChamferConfig(MatchingConfig):
+    """The truncated chamfer the data term scores poses with (distance maps: ``toolkit.matching.atlas``)."""
+
+    truncate_px: float = Field(5.0, gt=0, description="chamfer distances are truncated here (px; released code: 5 px threshold)")
+    directional: bool = Field(False, description="directional chamfer: add an orientation channel (distance + weight·|Δangle|)")
+    orientation_bins: int = Field(8, ge=2, le=32, description="orientation bins over [0, π) when directional (count)")
+    orientation_weight_px_per_rad: float = Field(
+        10.0, ge=0, description="directional chamfer weight (px per radian; released code: DT + 10·|Δangle|)")
 
 
 # --- street points ------------------------------------------------------------------------------
@@ -177,9 +189,7 @@ def search(atlas: CropAtlas, erosion: int, A: np.ndarray, pts: SegmentPoints, pa
                 P_ = probes.xy[seg]
                 flat = atlas.flat_index(_affine_round(m00, m01, P_[:, None, :, 0], P_[:, None, :, 1], br),
                                         _affine_round(m10, m11, P_[:, None, :, 0], P_[:, None, :, 1], bc), crop)
-                pv = atlas.inside[flat[..., None] + delta]
-                p_sums += pv.sum(axis=2, dtype=np.int64)
-                p_sums -= probes.n_pad[seg][:, None, None] * pv[:, :, 0, :].astype(np.int64)
+                _add_lookups(p_sums, atlas.inside, flat, delta, probes.n_pad[seg])
                 p_real += probes.n_real[seg]
             X = pts.xy[seg]                                          # (b,n,2) float32
             x, y = X[:, None, :, 0], X[:, None, :, 1]
@@ -187,16 +197,8 @@ def search(atlas: CropAtlas, erosion: int, A: np.ndarray, pts: SegmentPoints, pa
             cols = _affine_round(m10, m11, x, y, bc)
             bins = None
             if atlas.n_bins > 1 and pts.angle is not None:
-                a = pts.angle[seg][:, None, :] + th[..., None].astype(np.float32)
-                ca, sa = np.cos(a), np.sin(a)
-                pix_ang = np.arctan2(A32[0, 0] * ca + A32[0, 1] * sa, A32[1, 0] * ca + A32[1, 1] * sa)
-                bins = (np.floor(np.mod(pix_ang, np.pi) / np.pi * atlas.n_bins).astype(np.int64)
-                        % atlas.n_bins)
-            flat = atlas.flat_index(rows, cols, crop, bins)            # (b,R,n)
-            vals = buf[flat[..., None] + delta]                        # (b,R,n,O) uint8
-            sums += vals.sum(axis=2, dtype=np.int64)
-            # padding repeats the first point: remove its repeated look-ups exactly
-            sums -= pts.n_pad[seg][:, None, None] * vals[:, :, 0, :].astype(np.int64)
+                bins = _orientation_bins(atlas, pts.angle[seg], th, A32)
+            _add_lookups(sums, buf, atlas.flat_index(rows, cols, crop, bins), delta, pts.n_pad[seg])
             n_real += pts.n_real[seg]
         val = sums.astype(np.float64) / (np.maximum(n_real, 1) * SCALE)[:, None, None]
         if use_probes:
@@ -214,6 +216,22 @@ def search(atlas: CropAtlas, erosion: int, A: np.ndarray, pts: SegmentPoints, pa
     for _ in map_in_order(batch, range(0, P, step), workers):
         pass
     return cost, best_theta, best_off
+
+
+def _add_lookups(sums: np.ndarray, buf: np.ndarray, flat: np.ndarray, delta: np.ndarray, n_pad: np.ndarray) -> None:
+    """sums (b,R,O) += the look-ups of ``buf`` at flat (b,R,n) + delta (b,1,1,O), summed over the points;
+    padding repeats the first point: its repeated look-ups are removed exactly."""
+    vals = buf[flat[..., None] + delta]                        # (b,R,n,O) uint8
+    sums += vals.sum(axis=2, dtype=np.int64)
+    sums -= n_pad[:, None, None] * vals[:, :, 0, :].astype(np.int64)
+
+
+def _orientation_bins(atlas: CropAtlas, angle: np.ndarray, th: np.ndarray, A32: np.ndarray) -> np.ndarray:
+    """(b,R,n) directional plane of each point: its street-frame angle (b,n) turned by the poses th (b,R)."""
+    a = angle[:, None, :] + th[..., None].astype(np.float32)
+    ca, sa = np.cos(a), np.sin(a)
+    pix_ang = np.arctan2(A32[0, 0] * ca + A32[0, 1] * sa, A32[1, 0] * ca + A32[1, 1] * sa)
+    return np.floor(np.mod(pix_ang, np.pi) / np.pi * atlas.n_bins).astype(np.int64) % atlas.n_bins
 
 
 def _affine_round(m0: np.ndarray, m1: np.ndarray, x: np.ndarray, y: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -4,6 +4,10 @@ street/gps.csv (image_name,lon,lat[,sigma_m]) names COLMAP images; their camera 
 pair with the fixes projected to the scene CRS. For each street segment a weighted 2D rigid fit
 (scale is metric) over the ``n_local`` fixes nearest to it (released code: one fit per block of
 ~100 fixes, which follows the drift of a long route) predicts where the segment lies.
+
+The data term (``GpsConfig``) trusts each predicted position within a radius (from the fixes' σ,
+widened where the local fit's residual is large) and the predicted heading within ``angle_deg``;
+the route placement (``toolkit.matching.route_prior``) gives a ``GpsPrior`` used the same way.
 """
 
 from __future__ import annotations
@@ -12,8 +16,31 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from pydantic import Field
 
+from toolkit.matching.config import MatchingConfig
+from toolkit.matching.mrf import wrap_angle
 from toolkit.types import StreetSegments
+
+
+class GpsConfig(MatchingConfig):
+    """How the data term uses a prior position of each segment: GPS fixes or the route placement."""
+
+    flat_prefix = "gps_"
+
+    radius_m: float | None = Field(None, gt=0, description="prune poses putting a segment centre farther than "
+                                                          "this from its GPS position (m; None: from the fixes' σ)")
+    cost_weight: float = Field(0.3, ge=0, description="weight w of the soft prior w·(d / GPS radius)² added to "
+                                                      "the raw chamfer cost (0: hard pruning only)")
+    radius_sigmas: float = Field(5.0, gt=0, description="GPS radius in fix σ when radius_m is None")
+    radius_fit_sigmas: float | None = Field(
+        3.0, gt=0, description="with radius_m None: widen a segment's radius to this many RMS residuals "
+                               "of its local GPS fit (None: off)")
+    radius_margin_m: float = Field(5.0, ge=0, description="added to the σ-based GPS radius (pose error of "
+                                                          "the candidate itself)")
+    angle_deg: float | None = Field(45.0, gt=0, description="prune candidates whose rotation differs more "
+                                                            "(degrees; None: no test)")
+    fit_fixes: int = Field(100, ge=3, description="GPS fixes per local rigid fit (count; nearest to the segment)")
 
 
 @dataclass(frozen=True)
@@ -104,3 +131,52 @@ def gps_prior(scene, street: StreetSegments, n_local: int = 100, default_sigma_m
     rms = np.sqrt((res ** 2 * inlier).sum(axis=1) / np.maximum(inlier.sum(axis=1), 1))
     return GpsPrior(position=pos, angle=theta, n_fixes=int(hit.sum()), sigma_m=float(np.median(sig)),
                     fit_rms_m=rms)
+
+
+@dataclass(frozen=True)
+class PruningPrior:
+    """The prior the data term prunes with: positions (None: every pair is searched), each segment's
+    radius_m (S,), where it came from ("gps", "route_placement" or None) and the placement's figures."""
+
+    prior: GpsPrior | None = None
+    radius_m: np.ndarray | None = None
+    source: str | None = None
+    figures: dict | None = None
+
+
+def prior_radii(prior: GpsPrior, n_seg: int, cfg: GpsConfig) -> np.ndarray:
+    """(S,) radius (m) of each street segment: radius_m, or σ- and fit-based (see ``GpsConfig``)."""
+    if cfg.radius_m is not None:
+        return np.full(n_seg, cfg.radius_m)
+    radius = np.full(n_seg, cfg.radius_sigmas * prior.sigma_m)
+    if cfg.radius_fit_sigmas is not None and prior.fit_rms_m is not None:
+        radius = np.maximum(radius, cfg.radius_fit_sigmas * prior.fit_rms_m)
+    return radius + cfg.radius_margin_m
+
+
+def prior_offsets(prior: GpsPrior, theta: np.ndarray, t: np.ndarray, s_cent: np.ndarray, sj: np.ndarray,
+                  sk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(P,2) distances of both segment centres, placed by the poses, from their prior positions,
+    and (P,2) |rotation − the prior's rotation| (radians)."""
+    c, s = np.cos(theta), np.sin(theta)
+    dist, turn = [], []
+    for seg in (sj, sk):
+        x = s_cent[seg]
+        placed = np.stack([c * x[:, 0] - s * x[:, 1], s * x[:, 0] + c * x[:, 1]], 1) + t
+        dist.append(np.linalg.norm(placed - prior.position[seg], axis=1))
+        turn.append(np.abs(wrap_angle(theta - prior.angle[seg])))
+    return np.stack(dist, axis=1), np.stack(turn, axis=1)
+
+
+def prior_penalty(cost: np.ndarray, theta: np.ndarray, t: np.ndarray, s_cent: np.ndarray, sj: np.ndarray,
+                  sk: np.ndarray, prior: PruningPrior, cfg: GpsConfig) -> np.ndarray:
+    """cost + the soft prior term; +inf where the final pose puts a centre outside its radius or
+    turns farther than angle_deg from the prior heading."""
+    dist, turn = prior_offsets(prior.prior, theta, t, s_cent, sj, sk)
+    rel = dist / np.stack([prior.radius_m[sj], prior.radius_m[sk]], axis=1)
+    bad = rel.max(axis=1) > 1.0
+    if cfg.angle_deg is not None:
+        bad |= turn.max(axis=1) > np.deg2rad(cfg.angle_deg)
+    cost = cost + cfg.cost_weight * rel.max(axis=1) ** 2
+    cost[bad] = np.inf
+    return cost
