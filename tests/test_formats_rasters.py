@@ -259,7 +259,7 @@ def test_the_note_reaches_run_log_and_metrics_in_every_run(tiny, tmp_path):
     recipe.write_text("recipe: 1\nname: ov\nsteps:\n  overview: {use: overview.dsm_tophat}\n")
     for out in ("a", "b"):
         assert main(["run", str(recipe), "--scene", str(root), "--no-rerun", "-q", "--out", str(tmp_path / out)]) == 0
-    notes = json.loads((tmp_path / "a/metrics.json").read_text())["notes"]
+    notes = json.loads((tmp_path / "a/metrics.json").read_text())["input_notes"]
     assert len(notes) == 1 and "ortho.tif" in notes[0] and "resampled (bilinear)" in notes[0]
     assert (tmp_path / "a/metrics.json").read_bytes() == (tmp_path / "b/metrics.json").read_bytes()
     assert f"note: {notes[0]}" in (tmp_path / "b/run.log").read_text().splitlines()

@@ -124,7 +124,7 @@ def write_outputs(out: Path, plan, results: dict[str, Any], timings: dict[str, f
     if results.get("transforms") is not None:
         metrics_values["segment_scale"] = segment_scales(results["transforms"])
     metrics_values["warnings"] = list(warnings)
-    metrics_values["notes"] = list(notes)
+    metrics_values["input_notes"] = list(notes)  # "notes" is the evaluation's
     dump_json(out / "metrics.json", metrics_values)
     # timings vary run to run: kept apart so metrics.json is reproducible byte for byte
     dump_json(out / "timings.json", {k: round(v, 3) for k, v in timings.items()})
