@@ -31,7 +31,7 @@ from plugins.match_loopy_bp import LoopyBP
 from toolkit.matching.mrf import build_mrf, segment_argmin
 from toolkit.matching.solvers_bp import beliefs, build_plan, loopy_bp, send
 from toolkit.matching.solvers_dense import dense_loopy_bp, dense_message, dense_sweep, v_table
-from toolkit.matching.solvers_synth import synthetic_problem
+from toolkit.testing.solvers_synth import synthetic_problem
 from toolkit.observe import NullObserver
 
 

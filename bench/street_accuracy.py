@@ -26,7 +26,7 @@ from toolkit.io.cloud import read_points
 from toolkit.observe import NullObserver
 from toolkit.scene import load_array, load_points, load_scene
 from toolkit.street.score import angle_deg, found_up, score_segments, steep_truth, true_up
-from toolkit.street.toy import random_rotation
+from toolkit.testing.street_toy import random_rotation
 
 
 def main() -> None:

@@ -122,7 +122,7 @@ class RecordingObserver(NullObserver):
 
 def test_street_step_reports_progress_to_the_end():
     from plugins.street_region_growing import RegionGrowing
-    from toolkit.street.toy import toy_street
+    from toolkit.testing.street_toy import toy_street
 
     obs = RecordingObserver()
     RegionGrowing().segment(toy_street().points, obs)
@@ -147,7 +147,7 @@ def test_progress_observer_draws_the_street_bar(mini_scene):
 
     from plugins.street_region_growing import RegionGrowing
     from toolkit.observe import ProgressObserver
-    from toolkit.street.toy import toy_street
+    from toolkit.testing.street_toy import toy_street
 
     obs = ProgressObserver()
     obs.console = Console(file=io.StringIO(), force_terminal=True, width=100)

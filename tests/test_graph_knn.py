@@ -11,7 +11,7 @@ from pydantic import ValidationError
 
 from plugins.graph_knn import KnnGraph
 from toolkit.matching import conjugate as C
-from toolkit.matching.toy import make_toy, street_from_boundaries
+from toolkit.testing.matching_toy import make_toy, street_from_boundaries
 from toolkit.observe import DebugGraph, DebugLines, NullObserver
 
 

@@ -12,7 +12,7 @@ from toolkit.matching.mrf import SmoothnessParams, build_mrf, conditional_scores
 from toolkit.matching.solvers_bp import beliefs, build_plan, loopy_bp, send
 from toolkit.matching.solvers_common import vote
 from toolkit.matching.solvers_dense import dense_loopy_bp, v_table
-from toolkit.matching.solvers_synth import synthetic_problem
+from toolkit.testing.solvers_synth import synthetic_problem
 from toolkit.types import ConjugateGraphs, DataCosts
 
 

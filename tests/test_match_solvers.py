@@ -9,7 +9,7 @@ from toolkit.matching.mrf import build_mrf
 from toolkit.matching.solvers_bp import loopy_bp
 from toolkit.matching.solvers_local import greedy, icm
 from toolkit.matching.solvers_pgmpy import mplp
-from toolkit.matching.solvers_synth import synthetic_problem
+from toolkit.testing.solvers_synth import synthetic_problem
 from toolkit.matching.solvers_trws import trws
 
 

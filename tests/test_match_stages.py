@@ -14,7 +14,7 @@ from plugins.match_loopy_bp import LoopyBP
 from plugins.match_pgmpy import PgmpyMplp
 from plugins.match_trws import TRWS
 from toolkit.errors import StageError
-from toolkit.matching.solvers_synth import synthetic_problem
+from toolkit.testing.solvers_synth import synthetic_problem
 from toolkit.observe import DebugLines, DebugScalar, NullObserver
 from toolkit.types import ConjugateGraphs, DataCosts, Matches
 

@@ -16,7 +16,7 @@ from toolkit.street.normals import coordinate_columns, neighbourhood_covariance,
 from toolkit.street.order import morton_codes, prepare
 from toolkit.street.outline import boundary_points, diameters, relabel_by_size
 from toolkit.street.score import angle_deg, score_segments
-from toolkit.street.toy import random_rotation
+from toolkit.testing.street_toy import random_rotation
 from toolkit.street.vertical import estimate_up, fibonacci_sphere
 from toolkit.types import StreetSegments
 

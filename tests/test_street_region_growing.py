@@ -1,4 +1,4 @@
-"""street.region_growing on small clouds built from planes (toolkit.street.toy) and bad inputs."""
+"""street.region_growing on small clouds built from planes (toolkit.testing.street_toy) and bad inputs."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from toolkit.street.clock import STEP_SHARES
 from toolkit.street.params import nested_groups
 from toolkit.street.score import angle_deg, found_up, score_segments
 from toolkit.street.split import SplitConfig
-from toolkit.street.toy import toy_street
+from toolkit.testing.street_toy import toy_street
 from toolkit.types import StreetSegments
 
 

@@ -11,7 +11,7 @@ from pydantic import ValidationError
 from plugins.graph_knn import KnnGraph
 from plugins.unary_distance_map import DistanceMap
 from toolkit.errors import StageError
-from toolkit.matching.toy import make_toy, overview_from_labels, street_from_boundaries
+from toolkit.testing.matching_toy import make_toy, overview_from_labels, street_from_boundaries
 from toolkit.observe import DebugPoints2D, DebugText, NullObserver
 from toolkit.types import ConjugateGraphs, Grid
 
