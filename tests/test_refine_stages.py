@@ -131,7 +131,7 @@ def test_icp_scene_needs():
 def test_exhaustive_gives_the_same_bytes_with_its_searches_in_a_forked_child(small, monkeypatch):
     from functools import partial
 
-    import plugins.refine_exhaustive as refine_module
+    import toolkit.refine.passes as refine_module
     from toolkit.forked import can_fork
     from toolkit.threads import thread_budget, thread_cap
 
@@ -147,3 +147,59 @@ def test_exhaustive_gives_the_same_bytes_with_its_searches_in_a_forked_child(sma
     for a, b in ((here.T, split.T), (here.valid, split.valid), (here.cost, split.cost),
                  (here.confidence, split.confidence)):
         assert a.tobytes() == b.tobytes()
+
+
+def test_exhaustive_reads_the_old_flat_keys_as_its_nested_groups():
+    from pydantic import ValidationError
+
+    flat = {"rotation_range_deg": 8, "shift_penalty": 0.01, "normal_max_angle_deg": 12, "max_tilt_deg": 4,
+            "check_consistency": False, "neighbours_k": 5, "consistency_tol_m": 2, "consistency_tol_ratio": 0.1,
+            "reject_groups": True, "route_window_m": 100, "joint_window_m": 160, "joint_kernel": "tricube",
+            "joint_outline_points": 80, "joint_rotation_deg": 1, "joint_shift_m": 1.5, "joint_segment_points": 5}
+    nested = {"search": {"rotation_range_deg": 8, "shift_penalty": 0.01},
+              "ground": {"normal_max_angle_deg": 12, "max_tilt_deg": 4},
+              "consistency": {"enabled": False, "k": 5, "tol_m": 2, "tol_ratio": 0.1, "groups": True,
+                              "route_window_m": 100},
+              "joint": {"window_m": 160, "kernel": "tricube", "outline_points": 80, "rotation_deg": 1,
+                        "shift_m": 1.5, "segment_points": 5}}
+    assert Exhaustive.Params(**flat) == Exhaustive.Params(**nested)
+    assert Exhaustive.Params(**flat).search.rotation_step_deg == 1.0  # the group's other fields keep their defaults
+    with pytest.raises(ValidationError, match="keep joint.window_m"):
+        Exhaustive.Params(joint_window_m=10, joint={"window_m": 20})
+    with pytest.raises(ValidationError, match="rotation_range_deg"):
+        Exhaustive.Params(rotation_range_deg=90)
+
+
+def test_exhaustive_dotted_overrides_reach_the_nested_groups():
+    from pathlib import Path
+
+    from toolkit.recipe import load_recipe
+
+    osm = Path(__file__).resolve().parents[1] / "recipes" / "osm.yaml"
+
+    def params(*overrides: str):
+        return Exhaustive.from_config(load_recipe(osm, overrides).step("refine").params).params
+
+    base = params()   # the recipe's flat joint_* keys
+    assert (base.joint.window_m, base.joint.kernel, base.joint.outline_points) == (160.0, "tricube", 80)
+    nested = params("steps.refine.params.joint.shift_m=1.5", "steps.refine.params.search.truncate_m=2.5",
+                    "steps.refine.params.consistency.tol_m=4")
+    assert (nested.joint.shift_m, nested.joint.window_m, nested.search.truncate_m, nested.consistency.tol_m) == \
+        (1.5, 160.0, 2.5, 4.0)
+    assert params("steps.refine.params.joint_shift_m=1.5", "steps.refine.params.truncate_m=2.5",
+                  "steps.refine.params.consistency_tol_m=4") == nested
+
+
+def test_exhaustive_options_have_one_line_descriptions_and_icp_keeps_positional_consistency():
+    from pydantic import BaseModel
+
+    from toolkit.refine.finish import ConsistencyParams
+
+    fields = dict(Exhaustive.Params.model_fields)
+    for name, top in Exhaustive.Params.model_fields.items():
+        if isinstance(top.annotation, type) and issubclass(top.annotation, BaseModel):
+            fields.update({f"{name}.{key}": f for key, f in top.annotation.model_fields.items()})
+    assert len(fields) == 14 + 7 + 7 + 7 + 6 + 4  # the top level (5 groups), search, ground, consistency, joint, scale
+    for name, f in fields.items():
+        assert f.description and "\n" not in f.description and len(f.description) <= 120, name
+    assert ConsistencyParams(False, 6, 2.0, 0.1) == ConsistencyParams(enabled=False, k=6, tol_m=2.0, tol_ratio=0.1)

@@ -2,26 +2,38 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import numpy as np
+from pydantic import Field
 from scipy.spatial import cKDTree
 
+from toolkit.params import ParamGroup
 from toolkit.refine.consistency import reject_inconsistent, reject_minor_components, reject_route_minorities
 from toolkit.refine.segments import input_anchors
 from toolkit.refine.transforms import compose_eq5
 from toolkit.types import SegmentTransforms, StreetSegments
 
 
-@dataclass(frozen=True)
-class ConsistencyParams:
-    enabled: bool = True
-    k: int = 4
-    tol_m: float = 3.0
-    tol_ratio: float = 0.05
-    min_neighbours: int = 2
-    groups: bool = False
-    route_window_m: float = 150.0
+class ConsistencyParams(ParamGroup):
+    """The neighbour-consistency check (``steps.refine.params.consistency``; old flat keys in flat_names)."""
+
+    flat_names: ClassVar[dict[str, str]] = {
+        "enabled": "check_consistency", "k": "neighbours_k", "tol_m": "consistency_tol_m",
+        "tol_ratio": "consistency_tol_ratio", "groups": "reject_groups", "route_window_m": "route_window_m"}
+
+    enabled: bool = Field(True, description="reject segments whose transform disagrees with their neighbours'")
+    k: int = Field(4, ge=1, description="neighbours compared in the consistency check and for filling missing heights (count)")
+    tol_m: float = Field(3.0, gt=0, description="allowed gap between neighbouring transforms at their segment centres (metres) ...")
+    tol_ratio: float = Field(0.05, ge=0, description="... plus this fraction of the distance between the segments (drift grows with distance)")
+    min_neighbours: int = Field(2, ge=0, description="a segment is judged only with more valid segments than this (count)")
+    groups: bool = Field(False, description="also reject groups of mutually consistent segments that disagree with the best-supported group")
+    route_window_m: float = Field(150.0, ge=0, description="reject a segment disagreeing with over half the segments within this route distance "
+                                                         "(m; route-aware only; 0: off)")
+
+    def __init__(self, *args: Any, **data: Any) -> None:
+        """Also positionally, in field order (as refine.icp builds it)."""
+        super().__init__(**dict(zip(type(self).model_fields, args)), **data)
 
 
 def fill_heights(t_z: np.ndarray, valid: np.ndarray, centroids: np.ndarray, k: int,

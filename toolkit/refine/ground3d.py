@@ -13,24 +13,30 @@ for DSM road heights: cars, trees and building edges in the DSM only ever raise 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
+from pydantic import Field
 
+from toolkit.params import ParamGroup
 from toolkit.refine.bilinear import cells_inside, interpolate, world_to_rows_cols
 from toolkit.refine.columns import centred, minus_row
 from toolkit.refine.transforms import rotation_between, tilt_deg
 from toolkit.types import Grid, OverviewSegments, Scene
 
 
-@dataclass(frozen=True)
-class GroundParams:
-    normal_max_angle_deg: float = 15.0
-    min_ground_points: int = 30
-    max_tilt_deg: float = 5.0
-    inlier_height_m: float = 0.5
-    min_spread_m: float = 1.0
-    trim_low: float = 0.10
-    trim_high: float = 0.60
+class GroundParams(ParamGroup):
+    """The 3D tilt and height step (``steps.refine.params.ground``; old flat keys: the field names)."""
+
+    flat_prefix: ClassVar[str | None] = ""
+
+    normal_max_angle_deg: float = Field(15.0, gt=0, lt=90, description="ground normals within this angle of vertical define the street ground normal (paper: 15°)")
+    min_ground_points: int = Field(30, ge=3, description="fewer ground points than this: no tilt, height from the neighbours")
+    max_tilt_deg: float = Field(5.0, ge=0, description="a tilt correction larger than this is distrusted and skipped (degrees)")
+    inlier_height_m: float = Field(0.5, gt=0, description="over-view heights within this of the first height offset fit the over-view ground plane (m)")
+    min_spread_m: float = Field(1.0, ge=0, description="no fitted ground plane when the points spread less than this across (m, standard deviation)")
+    trim_low: float = Field(0.10, ge=0, le=1, description="the height difference is the mean of the slice from this quantile ...")
+    trim_high: float = Field(0.60, ge=0, le=1, description="... to this one (robust to cars, kerbs and walls)")
 
 
 @dataclass(frozen=True)

@@ -23,10 +23,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import partial
+from typing import Literal
 
 import numpy as np
+from pydantic import Field
 
 from toolkit.forked import map_chunks_forked
+from toolkit.params import ParamGroup
 from toolkit.refine.columns import column_means
 from toolkit.refine.route import route_neighbours, tricube
 from toolkit.refine.search2d import AllOutlines, SearchParams, search_segments
@@ -48,6 +51,25 @@ class JointParams:
     kernel: str = "box"              # "box": every segment in the window in full; "tricube": a share of its
                                      # points falling with its route distance, (1 − (Δs/window)³)³
     outline_points: int = 0          # at most this many thinned points per over-view outline (0: all)
+
+
+class JointConfig(ParamGroup):
+    """The joint pass as a stage sets it (``steps.refine.params.joint``; old flat keys: ``joint_<field>``)."""
+
+    window_m: float = Field(50.0, ge=0, description="re-fit each 2D transform jointly with the segments within "
+                                                    "this route distance (m; route-aware only; 0: off)")
+    rotation_deg: float = Field(2.0, ge=0, description="rotation searched either side of the segment's own (degrees)")
+    shift_m: float = Field(2.0, ge=0, description="offsets searched either side of the segment's own (metres)")
+    segment_points: int = Field(0, ge=0, description="cap on footprint points (0.5 m cells) per segment (count; 0: all)")
+    outline_points: int = Field(0, ge=0, description="cap on footprint points (0.5 m cells) per over-view outline (count; 0: all)")
+    kernel: Literal["box", "tricube"] = Field(
+        "box", description="weighting by route distance Δs: 'box' (all equal) or 'tricube' ((1 − (Δs/window)³)³)")
+
+    def search(self, *, rotation_step_deg: float, cell_m: float, max_points: int, truncate_m: float,
+               inlier_m: float) -> JointParams:
+        """The pass's ``JointParams``: this group with the search's step, cell, cap and distances."""
+        return JointParams(**self.model_dump(), rotation_step_deg=rotation_step_deg, cell_m=cell_m,
+                           max_points=max_points, truncate_m=truncate_m, inlier_m=inlier_m)
 
 
 class OutlineLabels:
@@ -128,7 +150,9 @@ def joint_transforms(footprints: dict[int, np.ndarray], T2d: np.ndarray, route_s
     ``pivots_xy``: (S,) and (S,2): each footprint was scaled by scale[j] about pivots_xy[j]
     (``toolkit.refine.scale``); segment i's window is then scaled as one body by scale[i] about its
     pivot, so that the neighbours keep their distances at segment i's scale."""
-    sp = SearchParams(p.rotation_deg, p.rotation_step_deg, 0.0, p.truncate_m, p.inlier_m, 0.0, True)
+    sp = SearchParams.model_construct(rotation_range_deg=p.rotation_deg, rotation_step_deg=p.rotation_step_deg,
+                                      margin_m=0.0, truncate_m=p.truncate_m, inlier_m=p.inlier_m,
+                                      shift_penalty=0.0, subpixel=True)   # not validated: any rotation
     idx = np.array(sorted(i for i in footprints if np.isfinite(route_s[i])), np.int64)
     out = np.array(T2d, np.float64, copy=True)
     outlines = outlines if outlines is not None else AllOutlines(grid, label_image, p.truncate_m)

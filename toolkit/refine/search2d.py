@@ -27,27 +27,34 @@ there is no half-pixel inward bias from using boundary-pixel centres.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 from scipy import ndimage
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy.fft import fft, ifft, irfft, next_fast_len, rfft, rfft2
 
+from pydantic import Field
+
+from toolkit.params import ParamGroup
 from toolkit.refine.bilinear import cells_inside, interpolate, interpolate_planes, rows_cols, world_to_rows_cols
 from toolkit.refine.columns import column_means
 from toolkit.refine.subpixel import gauss_newton_many, rotation_about
 from toolkit.types import Grid
 
 
-@dataclass(frozen=True)
-class SearchParams:
-    rotation_range_deg: float = 10.0
-    rotation_step_deg: float = 1.0
-    margin_m: float = 5.0
-    truncate_m: float = 3.0
-    inlier_m: float = 1.0
-    shift_penalty: float = 0.03
-    subpixel: bool = True
+class SearchParams(ParamGroup):
+    """The exhaustive 2D search (``steps.refine.params.search``; old flat keys: the field names)."""
+
+    flat_prefix: ClassVar[str | None] = ""
+
+    rotation_range_deg: float = Field(10.0, ge=0, le=45, description="rotation searched either side of the match (paper: 10°)")
+    rotation_step_deg: float = Field(1.0, gt=0, le=10, description="rotation step of the search (paper: 1°)")
+    margin_m: float = Field(5.0, ge=0, description="offsets keep the footprint centre within the over-view segment's box grown by this (m)")
+    truncate_m: float = Field(3.0, gt=0, description="chamfer distances are truncated at this (m): parts missing from the over-view do not dominate")
+    inlier_m: float = Field(1.0, gt=0, description="footprint points closer than this to the outline are inliers (m; sub-pixel step, inlier ratio)")
+    shift_penalty: float = Field(0.03, ge=0, description="cost per metre of shift from the match (m of chamfer per m), a tie-breaker along straight walls")
+    subpixel: bool = Field(True, description="refine the grid optimum below one pixel (parabola + Gauss-Newton on the signed distance)")
 
 
 @dataclass(frozen=True)
