@@ -164,8 +164,9 @@ def test_exhaustive_reads_the_old_flat_keys_as_its_nested_groups():
                         "shift_m": 1.5, "segment_points": 5}}
     assert Exhaustive.Params(**flat) == Exhaustive.Params(**nested)
     assert Exhaustive.Params(**flat).search.rotation_step_deg == 1.0  # the group's other fields keep their defaults
-    with pytest.raises(ValidationError, match="keep joint.window_m"):
-        Exhaustive.Params(joint_window_m=10, joint={"window_m": 20})
+    # given both ways, the later spelling wins
+    assert Exhaustive.Params(joint_window_m=10, joint={"window_m": 20}).joint.window_m == 20
+    assert Exhaustive.Params(joint={"window_m": 20}, joint_window_m=10).joint.window_m == 10
     with pytest.raises(ValidationError, match="rotation_range_deg"):
         Exhaustive.Params(rotation_range_deg=90)
 
@@ -188,6 +189,9 @@ def test_exhaustive_dotted_overrides_reach_the_nested_groups():
         (1.5, 160.0, 2.5, 4.0)
     assert params("steps.refine.params.joint_shift_m=1.5", "steps.refine.params.truncate_m=2.5",
                   "steps.refine.params.consistency_tol_m=4") == nested
+    # an override in the other spelling than the recipe's wins (the recipe sets joint_window_m: 160)
+    assert params("steps.refine.params.joint.window_m=200").joint.window_m == 200.0
+    assert params("steps.refine.params.joint.window_m=200", "steps.refine.params.joint_window_m=120").joint.window_m == 120.0
 
 
 def test_exhaustive_options_have_one_line_descriptions_and_icp_keeps_positional_consistency():

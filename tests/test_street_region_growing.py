@@ -167,8 +167,9 @@ def test_old_flat_keys_read_as_their_group():
         merge={"gap_m": 1.5}, absorb={"hops": 0}, boundary={"max_points": 50}, growing={"smooth_angle_deg": 12})
     assert RegionGrowing.Params(split_bin_m=1.0, split={"window_m": 2.0}).split.model_dump() == {
         **SplitConfig().model_dump(), "window_m": 2.0, "bin_m": 1.0}
-    with pytest.raises(ValidationError, match="split_window_m and split.window_m both given"):
-        RegionGrowing.Params(split_window_m=2.0, split={"window_m": 3.0})
+    # given both ways, the spelling given later wins (an override or a child recipe is later)
+    assert RegionGrowing.Params(split_window_m=2.0, split={"window_m": 3.0}).split.window_m == 3.0
+    assert RegionGrowing.Params(split={"window_m": 3.0}, split_window_m=2.0).split.window_m == 2.0
     with pytest.raises(ValidationError, match="split_windw_m"):  # a typo is rejected under its own name
         RegionGrowing.Params(split_windw_m=2.0)
     with pytest.raises(ValidationError, match=r"split\.window_m"):  # bounds are checked under the new key

@@ -359,8 +359,9 @@ def test_old_flat_keys_are_read_as_the_nested_keys():
     p = DistanceMap.Params(gps_radius_m=12.0, anchor_spacing_m=2.0, free_space_weight=0.2, refine_top_k=3)
     assert (p.gps.radius_m, p.anchor.spacing_m, p.free_space.weight, p.pose.refine_top_k) == (12.0, 2.0, 0.2, 3)
     assert p.gps.angle_deg == 45.0  # the group's other fields keep their defaults
-    with pytest.raises(ValidationError, match="keep gps.radius_m"):
-        DistanceMap.Params(gps_radius_m=12.0, gps={"radius_m": 10.0})
+    # given both ways, the later spelling wins
+    assert DistanceMap.Params(gps_radius_m=12.0, gps={"radius_m": 10.0}).gps.radius_m == 10.0
+    assert DistanceMap.Params(gps={"radius_m": 10.0}, gps_radius_m=12.0).gps.radius_m == 12.0
     with pytest.raises(ValidationError, match="gps.radius_m"):  # the error names the nested key
         DistanceMap.Params(gps_radius_m=-1)
 

@@ -4,7 +4,9 @@ A helper module owns a small pydantic group (``toolkit.street.split``: ``SplitCo
 stage's Params nests (``steps.street.params.split.window_m``). Stage Params used to be flat; a
 group's old flat key is ``flat_names[field]``, else ``flat_prefix + field`` (``flat_prefix`` None:
 ``<group>_``). ``GroupedParams`` reads the old keys as the nested ones, so recipes and ``-s``
-overrides written before the grouping keep working; a field given both ways is an error.
+overrides written before the grouping keep working. A field given both ways takes the spelling
+given later (``toolkit.recipe`` puts an override's and a child recipe's keys last), so
+``-s steps.refine.params.joint.window_m=200`` beats a recipe's ``joint_window_m: 160``.
 """
 
 from __future__ import annotations
@@ -39,7 +41,7 @@ def nested_groups(model: type[BaseModel]) -> dict[str, type[ParamGroup]]:
 def nest_flat_keys(data: Any, groups: dict[str, type[ParamGroup]]) -> Any:
     """``data`` with every old flat key moved to ``data[<group>][<field>]`` (a ``mode="before"``
     validator). Only fields the group has are moved (an unknown key stays, to be rejected under
-    its own name)."""
+    its own name); given both ways, the key later in ``data`` wins."""
     if not isinstance(data, dict):
         return data
     out = dict(data)
@@ -53,10 +55,11 @@ def nest_flat_keys(data: Any, groups: dict[str, type[ParamGroup]]) -> Any:
         if not isinstance(nested, dict):
             continue  # rejected by the group's own validation
         nested = dict(nested)
+        order = list(data)
         for key, field in flat.items():
-            if field in nested:
-                raise ValueError(f"{key} and {group}.{field} both given: keep {group}.{field}")
-            nested[field] = out.pop(key)
+            value = out.pop(key)
+            if field not in nested or group not in data or order.index(key) > order.index(group):
+                nested[field] = value
         out[group] = nested
     return out
 

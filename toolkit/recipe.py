@@ -89,7 +89,9 @@ def _merge(base: dict[str, Any], child: dict[str, Any]) -> dict[str, Any]:
                     merged = {"use": spec.get("use", old.get("use"))}
                     # changing `use` resets the step's params: the old ones belong to another stage
                     params = dict(old.get("params") or {}) if same_stage else {}
-                    params.update(spec.get("params") or {})
+                    for key, value in (spec.get("params") or {}).items():
+                        params.pop(key, None)  # last: given both ways, the child's spelling wins
+                        params[key] = value
                     merged["params"] = params
                     steps[name] = merged
                 else:
@@ -133,6 +135,9 @@ def apply_overrides(data: dict[str, Any], overrides: Iterable[str]) -> dict[str,
         if parts[0] == "steps" and len(parts) == 3 and parts[2] == "use":
             node["params"] = {}  # a new stage starts from its own defaults
         node[parts[-1]] = value
+        if parts[0] == "steps" and len(parts) >= 4 and parts[2] == "params":
+            params = data["steps"][parts[1]]["params"]
+            params[parts[3]] = params.pop(parts[3])  # last: given both ways, the override's spelling wins
     return data
 
 
