@@ -68,6 +68,28 @@ def _prepare(out: Path) -> Path:
     return tmp
 
 
+# the scene.yaml entries of every generated scene
+SCENE_FILES = {
+    "overview": {
+        "dsm": "overview/dsm.tif",
+        "ortho": "overview/ortho.tif",
+        "footprints": "overview/footprints.geojson",
+        "osm": "overview/map.osm",
+        "labels": "overview/labels.tif",
+        "cloud": "overview/cloud.ply",
+        "dem": "overview/dem.tif",
+    },
+    "street": {"cloud": "street/cloud.ply", "sparse": "street/sparse", "gps": "street/gps.csv"},
+    "truth": {
+        "lidar": "truth/lidar.ply",
+        "street_points": "truth/street_points.npy",
+        "street_labels": "truth/street_labels.npy",
+        "buildings": "truth/buildings.geojson",
+        "cameras": "truth/cameras.txt",
+    },
+}
+
+
 def build_scene(world: World, cfg: SynthConfig, seed: int, out: Path, name: str, source: dict) -> Path:
     from toolkit.scene import write_manifest
     from toolkit.synth import overview_writer, street_writer
@@ -88,40 +110,12 @@ def build_scene(world: World, cfg: SynthConfig, seed: int, out: Path, name: str,
         st = street_writer.write_street(
             world, track, cfg, tmp, ov, {s: _rng(seed, s) for s in ("capture", "drift", "sparse", "gps")}
         )
-    entries = {
-        "overview": {
-            "dsm": "overview/dsm.tif",
-            "ortho": "overview/ortho.tif",
-            "footprints": "overview/footprints.geojson",
-            "osm": "overview/map.osm",
-            "labels": "overview/labels.tif",
-            "cloud": "overview/cloud.ply",
-            "dem": "overview/dem.tif",
-        },
-        "street": {"cloud": "street/cloud.ply", "sparse": "street/sparse", "gps": "street/gps.csv"},
-        "truth": {
-            "lidar": "truth/lidar.ply",
-            "street_points": "truth/street_points.npy",
-            "street_labels": "truth/street_labels.npy",
-            "buildings": "truth/buildings.geojson",
-            "cameras": "truth/cameras.txt",
-        },
-    }
-    stats = {
-        "street_points": st.n_points,
-        "cameras": len(track),
-        "route_length_m": round(float(track.arclength[-1]), 2),
-        "route_closed": bool(track.closed),
-        "buildings": len(world.buildings),
-        "overview_size_px": [ov.grid.width, ov.grid.height],
-        "sparse_points": st.n_sparse,
-        "observations": st.n_obs,
-    }
+    stats = _stats(world, track, ov, st)
     write_manifest(
         tmp,
         name,
         cfg.crs,
-        entries,
+        SCENE_FILES,
         extra={
             "synth": {
                 "generator": "crossview synth",
@@ -134,22 +128,39 @@ def build_scene(world: World, cfg: SynthConfig, seed: int, out: Path, name: str,
         },
     )
     if cfg.preview:
-        from toolkit.synth.preview import draw_preview
-
-        with timed("preview"):
-            draw_preview(
-                tmp / "preview.png",
-                ov.dsm,
-                ov.dsm_nodata,
-                ov.grid,
-                ov.footprint_geoms,
-                track.centres[:, :2] + world.origin,
-                st.preview_drifted,
-                st.preview_true,
-                f"{name}: {stats['street_points']:,} street points, {len(track)} cameras, "
-                f"{stats['route_length_m']:.0f} m route, {len(world.buildings)} buildings",
-            )
+        _write_preview(tmp / "preview.png", world, track, ov, st, name, stats)
     if out.exists():
         shutil.rmtree(out)
     tmp.rename(out)
     return out
+
+
+def _stats(world: World, track, ov, st) -> dict:
+    return {
+        "street_points": st.n_points,
+        "cameras": len(track),
+        "route_length_m": round(float(track.arclength[-1]), 2),
+        "route_closed": bool(track.closed),
+        "buildings": len(world.buildings),
+        "overview_size_px": [ov.grid.width, ov.grid.height],
+        "sparse_points": st.n_sparse,
+        "observations": st.n_obs,
+    }
+
+
+def _write_preview(path: Path, world: World, track, ov, st, name: str, stats: dict) -> None:
+    from toolkit.synth.preview import draw_preview
+
+    with timed("preview"):
+        draw_preview(
+            path,
+            ov.dsm,
+            ov.dsm_nodata,
+            ov.grid,
+            ov.footprint_geoms,
+            track.centres[:, :2] + world.origin,
+            st.preview_drifted,
+            st.preview_true,
+            f"{name}: {stats['street_points']:,} street points, {len(track)} cameras, "
+            f"{stats['route_length_m']:.0f} m route, {len(world.buildings)} buildings",
+        )

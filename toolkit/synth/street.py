@@ -92,6 +92,22 @@ def _ray_dirs(
     return d_cam, d_world
 
 
+def _with_noise(pts: np.ndarray, dirs: np.ndarray, depth: np.ndarray, labels: np.ndarray, cfg: SynthConfig,
+                rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Range-dependent noise, and outliers spread along their rays (labelled clutter)."""
+    sigma = cfg.noise_m * np.maximum(depth / 10.0, 0.3)
+    noisy = pts + rng.normal(0, 1, pts.shape) * sigma[:, None]
+    n_out = int(round(cfg.outlier_fraction * len(noisy)))
+    if n_out:
+        o = np.sort(rng.choice(len(noisy), n_out, replace=False))
+        along = rng.normal(0, 3.0, n_out) + np.sign(rng.normal(size=n_out)) * 0.5
+        scatter = rng.normal(0, 0.8, (n_out, 3))
+        noisy[o] = pts[o] + dirs[o] * along[:, None] + scatter
+        labels = labels.copy()
+        labels[o] = LABEL_CLUTTER
+    return noisy, labels
+
+
 def capture_chunk(
     caster: Caster,
     track: Track,
@@ -164,16 +180,7 @@ def capture_chunk(
     stride = max(1, int(round(cfg.capture_step_m / cfg.camera_step_m)))
     camera = np.minimum(cap_of + rng.integers(0, stride, len(cap_of)), len(track) - 1).astype(np.int32)
 
-    sigma = cfg.noise_m * np.maximum(dep / 10.0, 0.3)
-    noisy = pts + rng.normal(0, 1, pts.shape) * sigma[:, None]
-    n_out = int(round(cfg.outlier_fraction * len(noisy)))
-    if n_out:
-        o = np.sort(rng.choice(len(noisy), n_out, replace=False))
-        along = rng.normal(0, 3.0, n_out) + np.sign(rng.normal(size=n_out)) * 0.5
-        scatter = rng.normal(0, 0.8, (n_out, 3))
-        noisy[o] = pts[o] + dirs[o] * along[:, None] + scatter
-        labels = labels.copy()
-        labels[o] = LABEL_CLUTTER
+    noisy, labels = _with_noise(pts, dirs, dep, labels, cfg, rng)
 
     clean = ~np.isin(mesh.kind[prim], [CROWN, TRUNK, CAR, POLE])
     surf = surface[clean]

@@ -90,25 +90,11 @@ def make_toy(blocks: tuple[int, int] = (3, 3), seed: int = 0, gsd_m: float = 0.5
                         cams_here = [p0 + f * (p1 - p0) + 8.0 * normal for f in (0.25, 0.5, 0.75)]
                         facades.append((b, p0, p1, cams_here))
 
-    # over-view raster (north-up; local metres → world by + origin)
-    W, H = int(np.ceil(size_x / gsd_m)), int(np.ceil(size_y / gsd_m))
-    top = origin[1] + H * gsd_m
-    grid = Grid((gsd_m, 0.0, origin[0], 0.0, -gsd_m, top), W, H, "EPSG:32617")
-    from skimage.draw import polygon as draw_polygon
-
-    label = np.full((H, W), -1, np.int32)
-    for b, corners in enumerate(rects):
-        rc = grid.world_to_pixel(corners + origin)
-        rr, cc = draw_polygon(rc[:, 0] + 0.5, rc[:, 1] + 0.5, shape=(H, W))
-        label[rr, cc] = b
-    overview = overview_from_labels(label, grid)
+    overview = _overview_of(rects, size_x, size_y, gsd_m, origin)
 
     # street segments in an arbitrary rigid frame
-    theta = float(rng.uniform(-np.pi, np.pi))
-    # street frame origin near the city (as a levelled SfM frame is), at a random rotation
+    theta, t = _street_frame(rng, origin, size_x, size_y)
     c, s = np.cos(theta), np.sin(theta)
-    centre = np.array(origin) + [size_x / 2, size_y / 2]
-    t = centre - np.array([[c, -s], [s, c]]) @ rng.uniform(-200, 200, 2)
     seg_pts, truth, cams = [], [], []
     for b, p0, p1, cam in facades:
         length = np.linalg.norm(p1 - p0)
@@ -121,11 +107,7 @@ def make_toy(blocks: tuple[int, int] = (3, 3), seed: int = 0, gsd_m: float = 0.5
         truth.append(b)
         cams.extend(np.asarray(cam) + origin)
     for _ in range(n_clutter):  # walls/fences that no over-view segment explains
-        p0 = rng.uniform([0, 0], [size_x, size_y])
-        d = rng.normal(size=2)
-        d /= np.linalg.norm(d)
-        u = np.sort(rng.uniform(0, rng.uniform(6, 20), 60))
-        seg_pts.append(p0 + u[:, None] * d + origin)
+        seg_pts.append(_clutter_wall(rng, size_x, size_y) + origin)
         truth.append(-1)
     Rinv = np.array([[c, s], [-s, c]])
     street_xy = [((p - t) @ Rinv.T) / scale for p in seg_pts]  # world = scale·R x + t
@@ -133,6 +115,38 @@ def make_toy(blocks: tuple[int, int] = (3, 3), seed: int = 0, gsd_m: float = 0.5
     cameras = ((np.asarray(cams).reshape(-1, 2) - t) @ Rinv.T) / scale
     return ToyScene(overview, street, np.asarray(truth, np.int64), theta, t, scale,
                     [r + origin for r in rects], cameras)
+
+
+def _overview_of(rects: list, size_x: float, size_y: float, gsd_m: float, origin) -> OverviewSegments:
+    """The over-view label raster of the buildings (north-up; local metres → world by + origin)."""
+    from skimage.draw import polygon as draw_polygon
+
+    W, H = int(np.ceil(size_x / gsd_m)), int(np.ceil(size_y / gsd_m))
+    top = origin[1] + H * gsd_m
+    grid = Grid((gsd_m, 0.0, origin[0], 0.0, -gsd_m, top), W, H, "EPSG:32617")
+    label = np.full((H, W), -1, np.int32)
+    for b, corners in enumerate(rects):
+        rc = grid.world_to_pixel(corners + origin)
+        rr, cc = draw_polygon(rc[:, 0] + 0.5, rc[:, 1] + 0.5, shape=(H, W))
+        label[rr, cc] = b
+    return overview_from_labels(label, grid)
+
+
+def _street_frame(rng: np.random.Generator, origin, size_x: float, size_y: float) -> tuple[float, np.ndarray]:
+    """A random rotation and a frame origin near the city (as a levelled SfM frame is)."""
+    theta = float(rng.uniform(-np.pi, np.pi))
+    c, s = np.cos(theta), np.sin(theta)
+    centre = np.array(origin) + [size_x / 2, size_y / 2]
+    return theta, centre - np.array([[c, -s], [s, c]]) @ rng.uniform(-200, 200, 2)
+
+
+def _clutter_wall(rng: np.random.Generator, size_x: float, size_y: float) -> np.ndarray:
+    """60 points of a 6-20 m straight wall at a random place and direction (local metres)."""
+    p0 = rng.uniform([0, 0], [size_x, size_y])
+    d = rng.normal(size=2)
+    d /= np.linalg.norm(d)
+    u = np.sort(rng.uniform(0, rng.uniform(6, 20), 60))
+    return p0 + u[:, None] * d
 
 
 def overview_from_labels(label: np.ndarray, grid: Grid) -> OverviewSegments:
