@@ -291,13 +291,13 @@ def _registration(points, scene: Scene, shift=(0.0, 0.0, 0.0)):
 @pytest.mark.parametrize("S", [5, 2 ** 15 + 3])
 def test_segment_error_columns_per_segment(S):
     """Per-segment mean/median errors are those of each segment's points (int16 fast path and not)."""
-    from plugins.evaluate_chamfer import _segments_table
+    from toolkit.evaluation.scoring import segments_table
 
     rng = np.random.default_rng(S)
     labels = rng.integers(-2, S, 4 * S).astype(np.int32)
     labels[:S] = np.arange(S)  # every segment has points
     err = rng.gamma(2.0, 1.0, len(labels))
-    rows = _segments_table(_street(len(labels), labels, S), None, None, None, err, None)
+    rows = segments_table(_street(len(labels), labels, S), None, None, None, err, None)
     for s in (0, 1, S // 2, S - 1):
         mine = err[labels == s]
         assert rows[s]["n_points"] == len(mine)
