@@ -8,12 +8,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from plugins.refine_global_fpfh import GlobalFpfh, voxel_down
+from plugins.refine_global_fpfh import GlobalFpfh
 from plugins.refine_rigid_oracle import RigidOracle
 from toolkit.evaluation.metrics import apply_transform
 from toolkit.io.cloud import write_ply
 from toolkit.observe import NullObserver
 from toolkit.recipe import load_recipe
+from toolkit.refine.fpfh import voxel_down
 from toolkit.types import Scene, SceneFiles, SegmentTransforms, StreetSegments
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -207,3 +207,24 @@ def test_exhaustive_options_have_one_line_descriptions_and_icp_keeps_positional_
     for name, f in fields.items():
         assert f.description and "\n" not in f.description and len(f.description) <= 120, name
     assert ConsistencyParams(False, 6, 2.0, 0.1) == ConsistencyParams(enabled=False, k=6, tol_m=2.0, tol_ratio=0.1)
+
+
+def test_icp_reads_the_old_flat_keys_as_its_nested_groups_with_one_line_descriptions():
+    from pydantic import BaseModel
+
+    flat = {"distances_m": (4.0, 2.0), "iterations": 5, "voxel_m": 0.5, "max_points": 500, "min_fitness": 0.5,
+            "max_correction_m": 4, "max_correction_deg": 3, "normal_max_angle_deg": 12, "min_ground_points": 20,
+            "check_consistency": False, "neighbours_k": 6, "consistency_tol_m": 2, "consistency_tol_ratio": 0.1}
+    nested = {"icp": {"distances_m": (4.0, 2.0), "iterations": 5, "voxel_m": 0.5, "max_points": 500,
+                      "min_fitness": 0.5, "max_correction_m": 4, "max_correction_deg": 3},
+              "ground": {"normal_max_angle_deg": 12, "min_ground_points": 20},
+              "consistency": {"enabled": False, "k": 6, "tol_m": 2, "tol_ratio": 0.1}}
+    assert IcpRefine.Params(**flat) == IcpRefine.Params(**nested)
+    assert IcpRefine.Params().consistency.route_window_m == 150.0  # the group's other fields keep their defaults
+    fields = dict(IcpRefine.Params.model_fields)
+    for name, top in IcpRefine.Params.model_fields.items():
+        if isinstance(top.annotation, type) and issubclass(top.annotation, BaseModel):
+            fields.update({f"{name}.{key}": f for key, f in top.annotation.model_fields.items()})
+    assert len(fields) == 4 + 7 + 7 + 7  # the top level (3 groups), icp, ground, consistency
+    for name, f in fields.items():
+        assert f.description and "\n" not in f.description and len(f.description) <= 120, name

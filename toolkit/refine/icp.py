@@ -11,18 +11,28 @@ Both use a coarse-to-fine schedule of correspondence distances.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
+from pydantic import Field
 
+from toolkit.params import ParamGroup
 from toolkit.types import Grid
 
 
-@dataclass(frozen=True)
-class IcpParams:
-    distances_m: tuple[float, ...] = (6.0, 3.0, 1.5, 0.75)
-    iterations: int = 30
-    voxel_m: float = 0.3
-    max_points: int = 20000
+class IcpParams(ParamGroup):
+    """The ICP schedule, its source points and the acceptance of its result (``steps.refine.params.icp``;
+    old flat keys: the field names)."""
+
+    flat_prefix: ClassVar[str | None] = ""
+
+    distances_m: tuple[float, ...] = Field((6.0, 3.0, 1.5, 0.75), min_length=1, description="Correspondence distances, coarse to fine (metres).")
+    iterations: int = Field(30, ge=1, description="ICP iterations per distance.")
+    voxel_m: float = Field(0.3, gt=0, description="Source points are thinned to one per voxel of this size (metres).")
+    max_points: int = Field(20000, ge=100, description="At most this many source points per segment.")
+    min_fitness: float = Field(0.3, ge=0, le=1, description="ICP results matching a smaller share of source points are discarded (seed kept).")
+    max_correction_m: float = Field(10.0, gt=0, description="ICP results moving the segment centre farther than this are discarded (metres).")
+    max_correction_deg: float = Field(10.0, gt=0, description="ICP results rotating more than this are discarded (degrees).")
 
 
 @dataclass(frozen=True)
@@ -61,6 +71,36 @@ class CloudIndex:
         p = self.xyz[idx]
         keep = (p[:, 0] >= lo[0]) & (p[:, 0] <= hi[0]) & (p[:, 1] >= lo[1]) & (p[:, 1] <= hi[1])
         return p[keep], None if self.normals is None else self.normals[idx[keep]]
+
+
+def accepted(res: IcpResult, p: IcpParams) -> bool:
+    """Whether an ICP result fits enough points and stays near its seed (else the seed is kept)."""
+    ang = np.degrees(np.arccos(np.clip((np.trace(res.delta[:3, :3]) - 1) / 2, -1, 1)))
+    return res.fitness >= p.min_fitness and ang <= p.max_correction_deg and \
+        np.linalg.norm(res.delta[:3, 3]) <= p.max_correction_m + 1e-9
+
+
+def voxel_thin(xyz: np.ndarray, voxel: float, max_points: int) -> np.ndarray:
+    """The first point in each occupied voxel (input order), then at most ``max_points`` evenly spread."""
+    key = np.floor(xyz / voxel).astype(np.int64)
+    _, first = np.unique(key, axis=0, return_index=True)
+    out = xyz[np.sort(first)]
+    if len(out) > max_points:
+        out = out[np.linspace(0, len(out) - 1, max_points).astype(np.int64)]
+    return out
+
+
+def file_normals(path, n: int) -> np.ndarray | None:
+    """Per-point normals stored in the over-view cloud file (PLY nx, ny, nz), else None."""
+    from toolkit.open3d_import import open3d
+    o3d = open3d()
+
+    if path is None or path.suffix.lower() != ".ply":
+        return None
+    pc = o3d.io.read_point_cloud(str(path))
+    if not pc.has_normals() or len(pc.normals) != n:
+        return None
+    return np.asarray(pc.normals, dtype=np.float64)
 
 
 def outline_points(grid: Grid, mask: np.ndarray) -> np.ndarray:
