@@ -94,7 +94,8 @@ class ConstrainedBA(Stage):
             return AdjustedCameras(replace_poses(model, R_w, t_w, X_w, point_errors_px(model, warped_px)),
                                    before, before, 0)
         C_prior = -np.einsum("cba,cb->ca", R_w, t_w)
-        bp = BAParams(p.lambda_, p.loss, p.loss_scale_px, p.max_iterations, p.function_tolerance, p.threads)
+        bp = BAParams(lambda_=p.lambda_, loss=p.loss, loss_scale_px=p.loss_scale_px, max_iterations=p.max_iterations,
+                      function_tolerance=p.function_tolerance, threads=p.threads)
         backend = p.backend
         if backend == "ceres" and degenerate_centres(C_prior):
             obs.warn("camera centres are exactly collinear/coplanar (pycolmap's prior alignment would "

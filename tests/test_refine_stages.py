@@ -194,10 +194,8 @@ def test_exhaustive_dotted_overrides_reach_the_nested_groups():
     assert params("steps.refine.params.joint.window_m=200", "steps.refine.params.joint_window_m=120").joint.window_m == 120.0
 
 
-def test_exhaustive_options_have_one_line_descriptions_and_icp_keeps_positional_consistency():
+def test_exhaustive_options_have_one_line_descriptions():
     from pydantic import BaseModel
-
-    from toolkit.refine.finish import ConsistencyParams
 
     fields = dict(Exhaustive.Params.model_fields)
     for name, top in Exhaustive.Params.model_fields.items():
@@ -206,7 +204,6 @@ def test_exhaustive_options_have_one_line_descriptions_and_icp_keeps_positional_
     assert len(fields) == 14 + 7 + 7 + 7 + 6 + 4  # the top level (5 groups), search, ground, consistency, joint, scale
     for name, f in fields.items():
         assert f.description and "\n" not in f.description and len(f.description) <= 120, name
-    assert ConsistencyParams(False, 6, 2.0, 0.1) == ConsistencyParams(enabled=False, k=6, tol_m=2.0, tol_ratio=0.1)
 
 
 def test_icp_reads_the_old_flat_keys_as_its_nested_groups_with_one_line_descriptions():

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import numpy as np
 from pydantic import Field
@@ -30,10 +30,6 @@ class ConsistencyParams(ParamGroup):
     groups: bool = Field(False, description="also reject groups of mutually consistent segments that disagree with the best-supported group")
     route_window_m: float = Field(150.0, ge=0, description="reject a segment disagreeing with over half the segments within this route distance "
                                                          "(m; route-aware only; 0: off)")
-
-    def __init__(self, *args: Any, **data: Any) -> None:
-        """Also positionally, in field order (as refine.icp builds it)."""
-        super().__init__(**dict(zip(type(self).model_fields, args)), **data)
 
 
 def fill_heights(t_z: np.ndarray, valid: np.ndarray, centroids: np.ndarray, k: int,
