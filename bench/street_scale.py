@@ -9,7 +9,8 @@ camera positions × S; the truth unchanged): ``campus0`` is ``crossview synth --
 runs with street/gps.csv and without (``street_scale: auto``), and one table is printed: estimated
 scale / S, its source, horizontal median and p95 (3D for dsm), status and exit code, and for each
 run the ratio of its horizontal median and p95 to the same scene's at scale 1 (same GPS setting).
-The scene folders stay (about 0.2-0.5 GB each); delete data/scale/ to free them.
+Each run's stdout and stderr go to data/scale/out/<run>.log. The scene folders stay (about
+0.2-0.5 GB each); delete data/scale/ to free them.
 """
 
 from __future__ import annotations
@@ -65,6 +66,8 @@ def run(root: Path, recipe: str, gps: bool) -> dict:
     proc = subprocess.run([exe, "run", str(REPO / "recipes" / f"{recipe}.yaml"), "--scene",
                            str(root / ("scene.yaml" if gps else "scene-nogps.yaml")), "--out", str(out),
                            "--no-rerun", "-q"], capture_output=True, text=True)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    Path(f"{out}.log").write_text(proc.stdout + proc.stderr)  # an exit 1 or 2 says why here
     m = json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").is_file() else {}
     truth = m.get("truth") or {}
     kind = "error_3d" if recipe == "dsm" else "horizontal"
@@ -97,7 +100,7 @@ def main() -> None:
         base = ref.get((r["scene"], r["gps"]))
         est = r["scale"].get("gps_estimate", r["scale"].get("value"))
         rel = "-" if est is None else f"{est / r['S']:.4f}"
-        ratio = (lambda k: f"{r[k] / base[k]:.2f}" if base and r[k] and base[k] else "-")
+        ratio = (lambda k, r=r, base=base: f"{r[k] / base[k]:.2f}" if base and r[k] and base[k] else "-")
         fmt = (lambda v: "-" if v is None else f"{v:.2f}")
         print(f"{r['scene']:14s} {r['S']:5g} {'yes' if r['gps'] else 'no':4s} "
               f"{rel:>7s} {r['scale'].get('source', '-'):8s} "
