@@ -22,16 +22,10 @@ import sys
 import numpy as np
 
 from _common import REPO
+from cities import meets_bar as meets
 
 RESULTS = REPO / "data" / "cities" / "results.json"
 GROSS_M = 2.0
-
-
-def meets(row: dict) -> bool:
-    h, p95, mean, rigid = (row.get(k) for k in ("horizontal_median_m", "p95_m", "error_3d_mean_m", "rigid_mean_m"))
-    if h is None or p95 is None or mean is None:
-        return False
-    return h <= 0.5 and p95 <= 1.5 and (rigid is None or mean < rigid)
 
 
 def _h(row: dict) -> float:

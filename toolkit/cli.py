@@ -6,7 +6,6 @@ User errors print one line and exit 2; ``--debug`` shows the traceback instead.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import importlib
 import logging
 import sys
@@ -137,18 +136,11 @@ class OneLineHandler(logging.Handler):
             self.handleError(record)
 
 
-@contextlib.contextmanager
 def reader_messages(quiet: bool):
     """Show the readers' notes (INFO) and warnings for the duration of a command; ``-q`` hides both."""
-    logger = logging.getLogger("crossview")
-    handler, level = OneLineHandler(logging.ERROR if quiet else logging.INFO), logger.level
-    logger.addHandler(handler)
-    logger.setLevel(logging.INFO)
-    try:
-        yield
-    finally:
-        logger.removeHandler(handler)
-        logger.setLevel(level)
+    from toolkit.logcache import listening
+
+    return listening(OneLineHandler(logging.ERROR if quiet else logging.INFO))
 
 
 class OneLineParser(argparse.ArgumentParser):

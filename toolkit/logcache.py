@@ -8,12 +8,28 @@ file the same notes, so run.log and metrics.json do not depend on what ran befor
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import threading
 
 LOGGER = "crossview"
 _fresh = threading.local()
+
+
+@contextlib.contextmanager
+def listening(handler: logging.Handler):
+    """``handler`` on the ``crossview`` logger, which passes INFO (the readers' notes) meanwhile."""
+    logger = logging.getLogger(LOGGER)
+    level = logger.level
+    logger.addHandler(handler)
+    if logger.getEffectiveLevel() > logging.INFO:
+        logger.setLevel(logging.INFO)
+    try:
+        yield handler
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
 
 
 class _Recorder(logging.Handler):
@@ -33,16 +49,8 @@ def replaying_cache(maxsize: int):
     def wrap(fn):
         @functools.lru_cache(maxsize=maxsize)
         def first(*args):
-            logger, recorder = logging.getLogger(LOGGER), _Recorder()
-            level = logger.level
-            logger.addHandler(recorder)
-            if logger.getEffectiveLevel() > logging.INFO:  # record notes even when nobody shows them
-                logger.setLevel(logging.INFO)
-            try:
+            with listening(_Recorder()) as recorder:  # records notes even when nobody shows them
                 value = fn(*args)
-            finally:
-                logger.removeHandler(recorder)
-                logger.setLevel(level)
             _fresh.called = True
             return value, tuple(recorder.records)
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import os
 import shutil
@@ -196,19 +195,11 @@ class _LogCollector(logging.Handler):
             kept.append(message)
 
 
-@contextlib.contextmanager
 def collected_log():
     """Collect ``crossview.*`` log messages for run.log and metrics.json (batch workers included)."""
-    logger = logging.getLogger("crossview")
-    handler, level = _LogCollector(), logger.level
-    logger.addHandler(handler)
-    if logger.getEffectiveLevel() > logging.INFO:
-        logger.setLevel(logging.INFO)
-    try:
-        yield handler
-    finally:
-        logger.removeHandler(handler)
-        logger.setLevel(level)
+    from toolkit.logcache import listening
+
+    return listening(_LogCollector())
 
 
 def _prepare_out(out: Path, overwrite: bool) -> Path:
