@@ -4,11 +4,12 @@ The model's 3D points are first moved with the warp (each by the pose change of 
 that observe it), then poses and points are re-adjusted: robust reprojection error plus
 λ‖C_i − C_i^warped‖² holding every camera centre near its warped position; intrinsics fixed.
 Solvers (``toolkit.adjust.ba``): pycolmap's Ceres adjuster with pose priors (default) or scipy
-least_squares. Measured on campus seed 0 (1456 images, 30 k points, 179 k observations): Ceres
-5.8 s, scipy 44.5 s, same result (RMS 0.428 px, median camera-centre error 0.49 m).
+least_squares (the same result, ~8x slower).
 As COLMAP does after a bundle adjustment, observations still reprojecting farther than
 ``max_reproj_error_px`` (or behind their camera: a point the robust loss let drift through a
 camera) are then removed from the model and the adjustment is run again.
+Then every street point is moved with the pose change of the camera that captured it
+(``remake_points``, ``toolkit.adjust.remake``): the evaluation and the outputs see those points.
 Reprojection RMS is over all image coordinates (u, v pooled), like a per-axis pixel noise σ; before
 over every observation of the warped model, after over the observations the adjusted model keeps.
 """
@@ -24,6 +25,8 @@ from pydantic import Field
 
 from toolkit.adjust.ba import BAParams, adjust_ceres, adjust_scipy, degenerate_centres
 from toolkit.adjust.model import (
+    bad_observations,
+    place_unadjusted,
     point_errors_px,
     registered_poses,
     registered_spread,
@@ -31,6 +34,7 @@ from toolkit.adjust.model import (
     rms_px,
     warp_points3d,
 )
+from toolkit.adjust.remake import remake_registration
 from toolkit.forked import forks, run_forked
 from toolkit.io.colmap import replace_poses
 from toolkit.refine.blas import single_threaded_blas
@@ -62,10 +66,19 @@ class ConstrainedBA(Stage):
         prior_spread: bool = Field(
             True, description="Camera position prior variance 1/λ + (warp spread at the "
                               "camera)² (m²) instead of the paper's 1/λ alone")
+        remake_points: bool = Field(
+            True, description="Move every street point with the adjusted pose change of the camera that "
+                              "captured it (off: the warp's points stand)")
+        capture_sparse_gap_m: float = Field(
+            10.0, gt=0, description="Only a sparse point within this distance names a street point's "
+                                    "capture camera, else the nearest camera centre (m)")
 
     @classmethod
     def scene_needs(cls, params) -> tuple[str, ...]:
         return ("sparse",)
+
+    def remakes(self) -> tuple[str, ...]:
+        return ("registration",) if self.params.remake_points else ()
 
     def holds_gil(self) -> bool:
         return self.params.backend == "ceres" and not self._isolated()
@@ -81,7 +94,7 @@ class ConstrainedBA(Stage):
             return self._run(registration, scene, obs)
 
     def _run(self, registration: Registration, scene: Scene, obs) -> AdjustedCameras:
-        from toolkit.scene import load_sparse
+        from toolkit.scene import load_points, load_sparse
 
         p = self.params
         model = load_sparse(scene, "adjust")
@@ -103,14 +116,13 @@ class ConstrainedBA(Stage):
             backend = "scipy"
         solve = adjust_scipy if backend == "scipy" else \
             partial(run_forked, adjust_ceres) if self._isolated() else adjust_ceres
-
         spread = registered_spread(model, registration) if p.prior_spread else None
         extra_var = None if spread is None else spread ** 2
         res = solve(model, R_w, t_w, X_w, C_prior, bp, extra_var)
         iterations = res.iterations
-        X = _place_unadjusted(model, res)
+        X = place_unadjusted(model, res)
         if p.max_reproj_error_px is not None:
-            bad = _bad_observations(model, res.R, res.t, X, p.max_reproj_error_px)
+            bad = bad_observations(model, res.R, res.t, X, p.max_reproj_error_px)
             removed = int(bad.sum())
             if bad.any():
                 # again from the warped state: the pose-prior adjuster first snaps the model onto the
@@ -120,31 +132,20 @@ class ConstrainedBA(Stage):
                 X_w = warp_points3d(model, R_w, t_w)
                 res = solve(model, R_w, t_w, X_w, C_prior, bp, extra_var)
                 iterations += res.iterations
-                X = _place_unadjusted(model, res)
+                X = place_unadjusted(model, res)
                 # what the second adjustment still cannot fit is dropped, not adjusted a third time
-                bad = _bad_observations(model, res.R, res.t, X, p.max_reproj_error_px)
+                bad = bad_observations(model, res.R, res.t, X, p.max_reproj_error_px)
                 if bad.any():
                     removed += int(bad.sum())
                     model = dataclasses.replace(model, observations=model.observations[~bad])
-                    X = _place_unadjusted(model, dataclasses.replace(res, X=X))
+                    X = place_unadjusted(model, dataclasses.replace(res, X=X))
                 obs.warn(f"removed {removed} of {len(model.observations) + removed} observations reprojecting "
                          f"farther than {p.max_reproj_error_px:g} px or behind their camera (adjusted again)")
         residual_px = residuals(model, res.R, res.t, X)
         adjusted = replace_poses(model, res.R, res.t, X, point_errors_px(model, residual_px))
-        return AdjustedCameras(adjusted, before, rms_px(residual_px), iterations)
+        # every observation names capture cameras, also those the adjustment dropped
+        remade = remake_registration(registration, load_points(scene, "street_cloud", "adjust"), load_sparse(
+            scene, "adjust"), res.R, res.t, p.capture_sparse_gap_m) if self.remakes() and scene.has("street_cloud") \
+            else None
+        return AdjustedCameras(adjusted, before, rms_px(residual_px), iterations, remade)
 
-
-def _place_unadjusted(model, res) -> np.ndarray:
-    """Points seen by fewer than two cameras are not adjusted: put them where their camera sees them."""
-    X = res.X.copy()
-    single = np.bincount(model.observations[:, 1].astype(np.int64), minlength=len(X)) < 2
-    if single.any():
-        X[single] = warp_points3d(model, res.R, res.t)[single]
-    return X
-
-
-def _bad_observations(model, R, t, X, max_px: float) -> np.ndarray:
-    ob = model.observations
-    img, pt = ob[:, 0].astype(np.int64), ob[:, 1].astype(np.int64)
-    depth = np.einsum("kb,kb->k", R[img, 2], X[pt]) + t[img, 2]
-    return (np.linalg.norm(residuals(model, R, t, X), axis=1) > max_px) | (depth <= 0)

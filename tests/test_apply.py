@@ -205,16 +205,36 @@ def test_existing_output_is_refused_unless_overwrite(tmp_path, capsys):
 
 
 def test_a_warp_without_blending_moves_each_point_by_its_carrier_transform():
-    """warp.nearest stores neighbours_k = 0: the carrier's own transform, through the same function."""
+    """warp.nearest stores neighbours_k = 0: the carrier's own transform, through the same function
+    (the stored warp without the adjust step's camera following)."""
     from dataclasses import replace
 
     from toolkit.warp.store import load_warp
 
     res, _ = tiny_run("ply")
     xyz, _ = tiny_cloud()
-    warp = replace(load_warp(res.out_dir).warp, neighbours_k=0)
+    warp = replace(load_warp(res.out_dir).warp, neighbours_k=0, cameras=None)
     carriers, _ = warp.carriers(xyz[:5000])
     moved = warp.maps(xyz[:5000], carriers).apply(xyz[:5000])
     T = warp.T[carriers]
     metric = xyz[:5000] / warp.street_scale         # the transforms act on the frame in metres
     assert np.abs(moved - (np.einsum("nab,nb->na", T[:, :3, :3], metric) + T[:, :3, 3])).max() < 1e-6
+
+
+def test_a_stored_warp_that_follows_the_cameras_moves_each_point_with_its_capture_camera():
+    """After the adjust step the run's points follow their capture cameras; the stored warp does too."""
+    from toolkit.io.colmap import read_model
+    from toolkit.warp.store import load_warp
+
+    res, scene = tiny_run("ply")
+    xyz, _ = tiny_cloud()
+    warp = load_warp(res.out_dir).warp
+    assert warp.cameras is not None and len(warp.source.camera) == len(xyz)
+    before, after = read_model(scene / "street/sparse"), read_model(res.out_dir / "sparse")
+    cam = warp.source.camera[:5000].astype(np.int64)
+    moved = warp.maps(xyz[:5000], warp.carriers(xyz[:5000])[0]).apply(xyz[:5000])
+    metric = xyz[:5000] / warp.street_scale
+    seen = np.einsum("nab,nb->na", before.R[cam], metric) + before.t[cam] / warp.street_scale
+    # where the adjusted camera sees the moved point is where the input camera saw the input point
+    again = np.einsum("nab,nb->na", after.R[cam], moved) + after.t[cam]
+    assert np.abs(again - seen).max() < 1e-6

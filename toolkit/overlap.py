@@ -70,9 +70,13 @@ class Prefetcher:
         self.started: dict[str, Future] = {}
 
     def _due(self, results: dict[str, Any], after: int) -> list[tuple[StepSpec, Stage]]:
-        return [(spec, stage) for spec, stage in self.steps[after + 1:]
-                if spec.name not in self.started and type(stage).prefetch is not Stage.prefetch
-                and all(n in results for n in stage.prefetch_inputs())]
+        due = []
+        for i, (spec, stage) in enumerate(self.steps[after + 1:], after + 1):
+            remade = {n for _, earlier in self.steps[after + 1:i] for n in earlier.remakes()}
+            if spec.name not in self.started and type(stage).prefetch is not Stage.prefetch \
+                    and all(n in results and n not in remade for n in stage.prefetch_inputs()):
+                due.append((spec, stage))
+        return due
 
     def start_beside(self, results: dict[str, Any], after: int) -> None:
         """Prefetches the outputs up to step ``after`` allow, in the pool, beside step ``after + 1``."""

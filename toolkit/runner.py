@@ -144,6 +144,7 @@ def execute(plan: Plan, obs: Observer | None = None,
     timings: dict[str, float] = {}
     kinds = {spec.name for spec, _ in plan.stages}
     steps = list(plan.stages)
+    stage_of = {spec.name: stage for spec, stage in steps}
     # Our BLAS work is tall-skinny ((N,3) @ (3,3)): OpenBLAS threads gain nothing there and, on a
     # loaded machine, spin-wait (0.27 s vs 0.0098 s measured for one such product under load).
     with threadpool_limits(1, user_api="blas"), ThreadPoolExecutor(1, "crossview-step") as pool:
@@ -177,6 +178,9 @@ def execute(plan: Plan, obs: Observer | None = None,
                 timings[s.name] = seconds
                 if s.name == "street":
                     check_assumed_scale(out, plan.scene)
+                for name in stage_of[s.name].remakes():  # e.g. the adjust step's re-made registration
+                    if getattr(out, name, None) is not None:
+                        results[name] = getattr(out, name)
     return results, timings
 
 

@@ -94,6 +94,11 @@ class Stage:
         release it): the runner then starts no ``prefetch`` beside it, as that would only wait."""
         return False
 
+    def remakes(self) -> tuple[str, ...]:
+        """Earlier outputs this step's output replaces for the steps after it (the adjust step's
+        re-made registration, ``AdjustedCameras.registration``); no prefetch reading them runs before it."""
+        return ()
+
     def prefetch_inputs(self) -> tuple[str, ...]:
         """The inputs ``prefetch`` takes (default: the required ones, ``KIND_INPUTS``)."""
         return KIND_INPUTS[self.kind]

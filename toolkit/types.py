@@ -362,12 +362,15 @@ class AdjustedCameras:
 
     model: the adjusted SparseModel (same image names and order as the input).
     rms_before_px / rms_after_px: reprojection RMS; iterations: solver iterations.
+    registration: the registration with its street points re-made from the adjusted poses
+    (``toolkit.adjust.remake``), which the steps after this one see; None: the warp's stands.
     """
 
     model: SparseModel
     rms_before_px: float
     rms_after_px: float
     iterations: int
+    registration: Registration | None = None
 
 
 @dataclass(frozen=True)

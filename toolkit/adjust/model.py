@@ -114,3 +114,20 @@ def point_errors_px(model: SparseModel, res: np.ndarray) -> np.ndarray:
 
 def rms_px(res: np.ndarray) -> float:
     return float(np.sqrt(np.mean(res ** 2))) if len(res) else 0.0
+
+
+def place_unadjusted(model, res) -> np.ndarray:
+    """Points seen by fewer than two cameras are not adjusted: put them where their camera sees them."""
+    X = res.X.copy()
+    single = np.bincount(model.observations[:, 1].astype(np.int64), minlength=len(X)) < 2
+    if single.any():
+        X[single] = warp_points3d(model, res.R, res.t)[single]
+    return X
+
+
+def bad_observations(model, R, t, X, max_px: float) -> np.ndarray:
+    """Observations reprojecting farther than ``max_px`` or behind their camera."""
+    ob = model.observations
+    img, pt = ob[:, 0].astype(np.int64), ob[:, 1].astype(np.int64)
+    depth = np.einsum("kb,kb->k", R[img, 2], X[pt]) + t[img, 2]
+    return (np.linalg.norm(residuals(model, R, t, X), axis=1) > max_px) | (depth <= 0)

@@ -5,7 +5,10 @@ A point is moved by ``toolkit.warp.blend.point_maps`` over its *carrier* (anchor
 segment's blending neighbours. The run's own street points carry the anchors the warp stage chose
 (valid carrier, else the nearest valid segment, then the pass check). A point of another cloud has
 no segment label: it takes the carrier of the nearest street point of the run's cloud (3D, in the
-input street frame), so the run's own points get their own carriers back.
+input street frame), so the run's own points get their own carriers back. After the bundle
+adjustment the run's points may instead follow their capture cameras (``PointWarp.cameras``,
+``toolkit.adjust.remake``): a point of another cloud then takes the capture camera of the nearest
+street point of the run.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ import numpy as np
 
 from toolkit.threads import query_workers
 from toolkit.warp.blend import PointMaps, point_maps
+from toolkit.warp.cameras import CameraMaps
 from toolkit.warp.cells import levelled_xy
 from toolkit.warp.index import SegmentIndex
 
@@ -31,6 +35,7 @@ class CarrierSource:
 
     xyz_f32: np.ndarray
     segment: np.ndarray
+    camera: np.ndarray | None = None  # (N,) capture camera of each, when the points follow the cameras
 
     @classmethod
     def of(cls, points: np.ndarray, segment: np.ndarray, origin: np.ndarray) -> CarrierSource:
@@ -44,9 +49,16 @@ class CarrierSource:
 
     def carriers(self, points: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(carrier segment (n,) int64, distance to that street point (n,) metres)."""
-        q = relative_f32(points, origin).astype(np.float64)
-        dist, nn = self.tree.query(q, workers=query_workers(len(q)))
+        dist, nn = self.nearest(points, origin)
         return self.segment[nn].astype(np.int64), dist
+
+    def cameras(self, points: np.ndarray, origin: np.ndarray) -> np.ndarray:
+        """(n,) capture camera of the nearest street point (``camera`` must be set)."""
+        return self.camera[self.nearest(points, origin)[1]].astype(np.int64)
+
+    def nearest(self, points: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        q = relative_f32(points, origin).astype(np.float64)
+        return self.tree.query(q, workers=query_workers(len(q)))
 
 
 def relative_f32(points: np.ndarray, origin: np.ndarray) -> np.ndarray:
@@ -76,6 +88,7 @@ class PointWarp:
     relative_distance: bool = False
     source: CarrierSource | None = None
     street_scale: float = 1.0
+    cameras: CameraMaps | None = None  # the points follow their capture camera instead (toolkit.adjust.remake)
 
     def _metric(self, points: np.ndarray) -> np.ndarray:
         return points if self.street_scale == 1.0 else np.asarray(points, np.float64) / self.street_scale
@@ -83,13 +96,21 @@ class PointWarp:
     def levelled_xy(self, points: np.ndarray) -> np.ndarray:
         return levelled_xy(self, self._metric(points))
 
-    def maps(self, points: np.ndarray, carriers: np.ndarray, xy: np.ndarray | None = None) -> PointMaps:
-        """Each point's blended map (``toolkit.warp.blend.point_maps``), for points as given."""
+    def maps(self, points: np.ndarray, carriers: np.ndarray, xy: np.ndarray | None = None,
+             cameras: np.ndarray | None = None) -> PointMaps:
+        """Each point's map, for points as given: the blend (``toolkit.warp.blend.point_maps``) over
+        its carrier, or, when the warp follows the cameras, its capture camera's pose change
+        (``cameras``; None: that of the nearest street point of the run)."""
         from dataclasses import replace
 
-        xy = self.levelled_xy(points) if xy is None else xy
-        maps = point_maps(xy, carriers, self.T, self.index, self.neighbours_k, self.min_distance_m,
-                          self.weight_cell_m, self.relative_distance)
+        if self.cameras is not None:
+            if cameras is None:
+                cameras = self.source.cameras(self._metric(points), self.origin)
+            maps = self.cameras.at(cameras)
+        else:
+            xy = self.levelled_xy(points) if xy is None else xy
+            maps = point_maps(xy, carriers, self.T, self.index, self.neighbours_k, self.min_distance_m,
+                              self.weight_cell_m, self.relative_distance)
         return maps if self.street_scale == 1.0 else replace(maps, A=maps.A / self.street_scale)
 
     def carriers(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -103,6 +124,13 @@ class PointWarp:
         from dataclasses import replace
 
         return replace(self, street_scale=float(street_scale))
+
+    def following(self, cameras: CameraMaps, capture_camera: np.ndarray) -> PointWarp:
+        """This warp with the run's points following their capture cameras' pose changes."""
+        from dataclasses import replace
+
+        return replace(self, cameras=cameras,
+                       source=replace(self.source, camera=np.asarray(capture_camera, np.int32)))
 
     def with_source(self, points: np.ndarray, carriers: np.ndarray) -> PointWarp:
         from dataclasses import replace

@@ -18,6 +18,9 @@ same run gives the same bytes. Arrays (S segments, V valid ones, F footprint poi
     las_offset_m    (3,)      offsets of registered.laz (and of ``apply``'s LAZ outputs)
     las_scale_m     ()        their scale (0.001 unless the cloud is too wide for 1 mm)
     street_scale    ()        street-frame units per metre: input points are divided by it first
+    camera_A (C,3,3), camera_b (C,3), camera_origin (3,), source_camera (N,) i4   only when the
+                              points follow their capture cameras (``toolkit.adjust.remake``): each
+                              camera's pose change p ↦ A p + b + origin, and each street point's camera
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from toolkit.errors import CrossviewError
+from toolkit.warp.cameras import CameraMaps
 from toolkit.warp.index import SegmentIndex
 from toolkit.warp.model import CarrierSource, PointWarp
 
@@ -64,6 +68,9 @@ def warp_arrays(stored: StoredWarp) -> dict[str, np.ndarray]:
         "source_xyz": w.source.xyz_f32, "source_segment": w.source.segment,
         "las_offset_m": np.asarray(stored.las_offset_m, np.float64), "las_scale_m": np.float64(stored.las_scale_m),
         "street_scale": np.float64(w.street_scale),
+        **({} if w.cameras is None else {
+            "camera_A": w.cameras.A, "camera_b": w.cameras.b, "camera_origin": w.cameras.origin,
+            "source_camera": w.source.camera}),
     }
 
 
@@ -96,7 +103,10 @@ def load_warp(path: Path) -> StoredWarp:
     if missing:
         raise CrossviewError(f"{path}: stored warp lacks {', '.join(missing)} (not written by crossview?)")
     index = SegmentIndex.from_arrays(a["valid"], a["footprint_xy"], a["footprint_segment"], a["neighbours"])
+    follows = "camera_A" in a
+    cameras = CameraMaps(a["camera_A"], a["camera_b"], a["camera_origin"]) if follows else None
     warp = PointWarp(a["origin"], a["up_rotation"], a["T"], index, int(a["neighbours_k"]),
                      float(a["min_distance_m"]), float(a["weight_cell_m"]), bool(a["relative_distance"]),
-                     CarrierSource(a["source_xyz"], a["source_segment"]), float(a.get("street_scale", 1.0)))
+                     CarrierSource(a["source_xyz"], a["source_segment"], a["source_camera"] if follows else None),
+                     float(a.get("street_scale", 1.0)), cameras)
     return StoredWarp(warp, str(a["crs"]), str(a["crs_wkt"]), a["las_offset_m"], float(a["las_scale_m"]))
