@@ -1,39 +1,15 @@
 """evaluate.chamfer — the paper's metric (§4.1) plus ground-truth errors when the scene has truth.
 
-``Metrics.values`` schema (written as metrics.json; distances in metres; a value is ``null`` when
-it cannot be computed, and ``notes`` says why)::
+``Metrics.values`` are metrics.json's evaluation entries (schema, cutoff_m, street, reference,
+chamfer, truth, matching, cameras, segments, notes), described field by field by
+``toolkit.metrics_model.RunMetrics``; distances in metres, ``null`` where a value cannot be
+computed (``notes`` says why). ``chamfer`` is the paper's metric over mutually nearest pairs within
+``cutoff_m`` (3D, and 2D on the clouds projected on (x, y)); ``truth``, ``matching`` and ``cameras``
+need the scene's truth. ``Metrics.per_point_error_m`` is the (N,) 3D error of every street point
+when truth exists.
 
-    schema: "crossview.metrics/1"
-    cutoff_m: float                      # pairs farther than this are ignored (paper: 10 m)
-    reference: {source: "truth_lidar" | "overview_cloud" | <path> | null, path, n_points, n_used}
-    street: {n_points, n_used}           # registered street cloud (n_used after subsampling)
-    chamfer: null | {                    # the paper's metric; null when there is no reference cloud
-      3d | 2d: {                         # 2d: both clouds projected on (x, y), pairs found in 2D
-        mean_m, std_m, median_m, p95_m,  # over mutually nearest pairs within cutoff_m
-        n_pairs,
-        paired_fraction,                 # n_pairs / street n_used: misplaced points stop pairing,
-        paired_fraction_reference,       #   so read the mean together with these fractions
-        histogram: {edges_m: [..], counts: [..]}}}   # pair distances, hist_bin_m (0.1 m) bins to cutoff_m
-    truth: null | {                      # registered vs truth/street_points.npy, every point
-      error_3d | horizontal: {mean_m, median_m, p90_m, p95_m, max_m, n},
-      within_m: {"0.5" | "1" | "2": {horizontal: fraction, 3d: fraction}},
-      histogram: {edges_m: [.., null], counts}}      # 3D errors; the last bin is "beyond cutoff_m"
-    matching: null | {precision, recall, precision_iou, recall_iou, n_street_segments, n_matched, n_correct,
-                      n_with_counterpart, n_overview_segments, n_overview_with_building}
-    cameras: null | {                    # camera centres vs truth/cameras.txt, matched by image name
-      source: "adjusted" | "registered", # which poses the centre_error_* fields describe
-      centre_error_mean_m, centre_error_median_m, centre_error_p95_m, centre_error_horizontal_median_m,
-      registered: {n, n_missing, error_3d: stats, horizontal: stats},
-      adjusted: same | null}             # after the adjust step, when the recipe has one
-    segments: [ {index, id, n_points, overview_match, overview_id, match_cost, match_confidence,
-                 refine_valid, refine_cost, true_building, matched_building, correct,
-                 error_mean_m, error_median_m} ]   # one per street segment; fields null when unknown
-                                                   # (correct is null for unmatched segments)
-    notes: [str]                         # what was skipped and why
-
-The runner adds ``warnings``; timings go to ``timings.json`` so metrics.json is reproducible. ``Metrics.per_point_error_m`` is the (N,) 3D error of
-every street point when truth exists. Segment-match scoring maps each street segment to the true
-building most of its points lie on (truth/street_labels.npy; none when most are ground/clutter).
+Segment-match scoring maps each street segment to the true building most of its points lie on
+(truth/street_labels.npy; none when most are ground/clutter).
 A match is correct when the over-view segment covers at least half of that building's true
 footprint (truth/buildings.geojson rasterised on the over-view grid), so a segment merging several
 buildings is the counterpart of each; precision = correct / matched, recall = correct / street

@@ -22,6 +22,7 @@ from toolkit.compare import (
 )
 from toolkit.errors import RecipeError
 from toolkit.io.cloud import write_ply
+from toolkit.metrics_model import RunMetrics
 
 
 class FakeMatchNone(FakeMatch):
@@ -99,7 +100,7 @@ def test_compare_runs_variants_into_tables_and_one_recording(recipe, mini_scene,
     assert "no façade points found" in rows[2].error
     for r in rows[:2]:
         assert (r.out_dir / "report.html").is_file() and (r.out_dir / "metrics.json").is_file()
-        assert r.values["chamfer"]["3d"]["n_pairs"] >= 1
+        assert r.metrics.chamfer.d3.n_pairs >= 1
     md = write_tables(out, rows, vs, 1)
     assert "| fake |" in md and "| none |" in md and "failed" in md
     with open(out / "table.csv") as fh:
@@ -117,7 +118,8 @@ def test_compare_runs_variants_into_tables_and_one_recording(recipe, mini_scene,
 
 def test_aggregate_mean_and_std_over_scenes():
     vs = [Variant("a", Path("x.yaml"))]
-    rows = [RunRow("a", f"s{k}", values={"chamfer": {"3d": {"mean_m": m}}, "matching": {"precision": p}},
+    rows = [RunRow("a", f"s{k}", metrics=RunMetrics.model_validate({"chamfer": {"3d": {"mean_m": m}},
+                                                                    "matching": {"precision": p}}),
                    timings={"match": 1.0, "refine": t}) for k, (m, p, t) in enumerate([(1.0, 0.5, 2.0), (3.0, 1.0, 4.0)])]
     rows.append(RunRow("a", "s2", error="boom"))
     agg = aggregate(rows, vs)[0]

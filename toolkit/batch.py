@@ -22,16 +22,16 @@ from typing import Any
 
 from toolkit.errors import CrossviewError
 
-# Metrics columns of the summary table: (column, dotted path in metrics.json)
+# Metrics columns of the summary table: (column, toolkit.metrics_model.KeyFigures attribute)
 COLUMNS: tuple[tuple[str, str], ...] = (
-    ("h_median_m", "truth.horizontal.median_m"),
-    ("h_mean_m", "truth.horizontal.mean_m"),
-    ("e3d_p95_m", "truth.error_3d.p95_m"),
-    ("chamfer2d_m", "chamfer.2d.mean_m"),
-    ("chamfer3d_m", "chamfer.3d.mean_m"),
-    ("paired", "chamfer.3d.paired_fraction"),
-    ("match_precision", "matching.precision"),
-    ("match_recall", "matching.recall"),
+    ("h_median_m", "error_h_median_m"),
+    ("h_mean_m", "error_h_mean_m"),
+    ("e3d_p95_m", "error_3d_p95_m"),
+    ("chamfer2d_m", "chamfer_2d_mean_m"),
+    ("chamfer3d_m", "chamfer_3d_mean_m"),
+    ("paired", "paired_fraction"),
+    ("match_precision", "match_precision"),
+    ("match_recall", "match_recall"),
 )
 
 
@@ -41,8 +41,8 @@ def scene_label(scene_dir: Path) -> str:
 
 def run_one(recipe_path: str, scene_dir: str, out_dir: str, overrides: list[str], overwrite: bool) -> dict[str, Any]:
     """Run one scene; never raises for user errors (they become the row's ``error``)."""
+    from toolkit.metrics_model import RunMetrics
     from toolkit.runner import run_recipe
-    from toolkit.summary import lookup
 
     row: dict[str, Any] = {"scene": scene_label(Path(scene_dir)), "status": "ok", "confidence": None,
                            "reason": "", "error": ""}
@@ -54,9 +54,9 @@ def run_one(recipe_path: str, scene_dir: str, out_dir: str, overrides: list[str]
             row.update(status=res.assessment.status, confidence=res.assessment.confidence,
                        reason=res.assessment.main_reason if not res.assessment.reliable else "")
         metrics = res.results.get("metrics")
-        values = dict(metrics.values) if metrics is not None else {}
-        for col, path in COLUMNS:
-            row[col] = lookup(values, path)
+        figures = RunMetrics.of(metrics).key_figures()
+        for col, name in COLUMNS:
+            row[col] = getattr(figures, name)
         row.update({f"t_{k}_s": round(v, 3) for k, v in res.timings.items()})
         row["warnings"] = len(res.warnings)
     except CrossviewError as exc:

@@ -29,22 +29,13 @@ from typing import Any
 import numpy as np
 
 from toolkit.errors import CrossviewError, RecipeError, SceneError
-from toolkit.report import lookup
+from toolkit.metrics_model import RunMetrics
 
-# (column, dotted path in metrics.json) — the same paths the run summary uses
-METRIC_COLUMNS: tuple[tuple[str, str], ...] = (
-    ("chamfer_3d_mean_m", "chamfer.3d.mean_m"),
-    ("chamfer_3d_std_m", "chamfer.3d.std_m"),
-    ("chamfer_2d_mean_m", "chamfer.2d.mean_m"),
-    ("chamfer_2d_std_m", "chamfer.2d.std_m"),
-    ("paired_fraction", "chamfer.3d.paired_fraction"),
-    ("error_h_median_m", "truth.horizontal.median_m"),
-    ("error_3d_mean_m", "truth.error_3d.mean_m"),
-    ("error_3d_p95_m", "truth.error_3d.p95_m"),
-    ("within_1m_h", "truth.within_m.1.horizontal"),
-    ("match_precision", "matching.precision"),
-    ("match_recall", "matching.recall"),
-    ("camera_median_m", "cameras.centre_error_median_m"),
+# The metrics columns, each a toolkit.metrics_model.KeyFigures attribute (as the run summary shows them)
+METRIC_COLUMNS: tuple[str, ...] = (
+    "chamfer_3d_mean_m", "chamfer_3d_std_m", "chamfer_2d_mean_m", "chamfer_2d_std_m", "paired_fraction",
+    "error_h_median_m", "error_3d_mean_m", "error_3d_p95_m", "within_1m_h", "match_precision", "match_recall",
+    "camera_median_m",
 )
 MD_HEADERS = {
     "chamfer_3d_mean_m": "Chamfer 3D (m)", "chamfer_3d_std_m": "3D std", "chamfer_2d_mean_m": "Chamfer 2D (m)",
@@ -69,7 +60,7 @@ class Variant:
 class RunRow:
     variant: str
     scene: str
-    values: dict[str, Any] = field(default_factory=dict)
+    metrics: RunMetrics = field(default_factory=RunMetrics)  # the evaluation's (empty: none or failed)
     timings: dict[str, float] = field(default_factory=dict)
     error: str | None = None
     out_dir: Path | None = None
@@ -218,7 +209,7 @@ def run_variants(variants: Sequence[Variant], scenes: Sequence[Path | None], out
                                      overrides=list(v.overrides), observer=obs, overwrite=True, rerun=False,
                                      registry=registry)
                     metrics = res.results.get("metrics")
-                    row.values = dict(metrics.values) if metrics is not None else {}
+                    row.metrics = RunMetrics.of(metrics)
                     row.timings = dict(res.timings)
                     row.out_dir = res.out_dir
                     row.seconds = time.perf_counter() - t0
@@ -243,9 +234,8 @@ def run_variants(variants: Sequence[Variant], scenes: Sequence[Path | None], out
 def run_record(row: RunRow) -> dict[str, Any]:
     rec: dict[str, Any] = {"variant": row.variant, "scene": row.scene, "status": row.status,
                            "confidence": row.confidence}
-    for col, path in METRIC_COLUMNS:
-        v = lookup(row.values, path)
-        rec[col] = float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
+    figures = row.metrics.key_figures()
+    rec.update({col: getattr(figures, col) for col in METRIC_COLUMNS})
     total = row.seconds if row.seconds is not None else sum(row.timings.values()) if row.timings else None
     rec["time_total_s"] = None if total is None else float(total)
     for step, sec in row.timings.items():
@@ -265,7 +255,7 @@ def aggregate(rows: Sequence[RunRow], variants: Sequence[Variant]) -> list[dict[
         ok = [r for r in mine if not r["error"]]
         agg: dict[str, Any] = {"variant": v.name, "description": v.description, "n_runs": len(ok),
                                "n_failed": len(mine) - len(ok), "status": variant_status(ok)}
-        for col in ["confidence"] + [c for c, _ in METRIC_COLUMNS] + ["time_total_s"] + time_cols:
+        for col in ["confidence"] + list(METRIC_COLUMNS) + ["time_total_s"] + time_cols:
             vals = np.array([r[col] for r in ok if r.get(col) is not None], float)
             agg[col] = float(vals.mean()) if len(vals) else None
             agg[f"{col}__std"] = float(vals.std()) if len(vals) > 1 else None
@@ -305,7 +295,7 @@ def _md_cell(value: float | None, std: float | None, col: str) -> str:
 
 def markdown_table(agg: Sequence[dict[str, Any]], n_scenes: int) -> str:
     cols = [c for c in ("status", "confidence") if any(a.get(c) is not None for a in agg)]
-    cols += [c for c, _ in METRIC_COLUMNS if any(a.get(c) is not None for a in agg)] + ["time_total_s"]
+    cols += [c for c in METRIC_COLUMNS if any(a.get(c) is not None for a in agg)] + ["time_total_s"]
     lines = [f"Comparison over {n_scenes} scene(s); mean" + (" ± std over scenes" if n_scenes > 1 else "") + ".",
              "",
              "| variant | " + " | ".join(MD_HEADERS.get(c, c) for c in cols) + " |",

@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from toolkit.metrics_model import RunMetrics
 from toolkit.refine.transforms import scale_of
 from toolkit.scene import load_points
 
@@ -125,7 +126,8 @@ def write_outputs(out: Path, plan, results: dict[str, Any], timings: dict[str, f
         metrics_values["segment_scale"] = segment_scales(results["transforms"])
     metrics_values["warnings"] = list(warnings)
     metrics_values["input_notes"] = list(notes)  # "notes" is the evaluation's
-    dump_json(out / "metrics.json", metrics_values)
+    # written from the model (toolkit.metrics_model): an entry of another type than it declares fails here
+    dump_json(out / "metrics.json", RunMetrics.checked(_jsonable(metrics_values)).to_json())
     # timings vary run to run: kept apart so metrics.json is reproducible byte for byte
     dump_json(out / "timings.json", {k: round(v, 3) for k, v in timings.items()})
     (out / "recipe.yaml").write_text(plan.recipe.to_yaml())

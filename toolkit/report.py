@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from toolkit.metrics_model import RunMetrics, SegmentRow
 from toolkit.types import (
     Matches,
     Metrics,
@@ -43,16 +44,16 @@ class ReportContext:
     assessment: Any = None  # toolkit.status.Assessment: the truth-free self-assessment, shown first
 
 
-# (label, dotted path in metrics values, format)
-HEADLINE: tuple[tuple[str, str, str], ...] = (
-    ("Chamfer 3D mean ± std", "chamfer.3d.mean_m|chamfer.3d.std_m", "{:.2f} ± {:.2f} m"),
-    ("Chamfer 2D mean ± std", "chamfer.2d.mean_m|chamfer.2d.std_m", "{:.2f} ± {:.2f} m"),
-    ("points paired (3D)", "chamfer.3d.paired_fraction", "{:.0%}"),
-    ("error vs truth, horizontal median", "truth.horizontal.median_m", "{:.2f} m"),
-    ("error vs truth, 3D p95", "truth.error_3d.p95_m", "{:.2f} m"),
-    ("points within 1 m (horizontal)", "truth.within_m.1.horizontal", "{:.0%}"),
-    ("match precision / recall", "matching.precision|matching.recall", "{:.0%} / {:.0%}"),
-    ("camera centre error, median", "cameras.centre_error_median_m", "{:.2f} m"),
+# (label, toolkit.metrics_model.KeyFigures attributes, format)
+HEADLINE: tuple[tuple[str, tuple[str, ...], str], ...] = (
+    ("Chamfer 3D mean ± std", ("chamfer_3d_mean_m", "chamfer_3d_std_m"), "{:.2f} ± {:.2f} m"),
+    ("Chamfer 2D mean ± std", ("chamfer_2d_mean_m", "chamfer_2d_std_m"), "{:.2f} ± {:.2f} m"),
+    ("points paired (3D)", ("paired_fraction",), "{:.0%}"),
+    ("error vs truth, horizontal median", ("error_h_median_m",), "{:.2f} m"),
+    ("error vs truth, 3D p95", ("error_3d_p95_m",), "{:.2f} m"),
+    ("points within 1 m (horizontal)", ("within_1m_h",), "{:.0%}"),
+    ("match precision / recall", ("match_precision", "match_recall"), "{:.0%} / {:.0%}"),
+    ("camera centre error, median", ("camera_median_m",), "{:.2f} m"),
 )
 
 
@@ -72,16 +73,6 @@ ASSESSMENT_CARDS: tuple[tuple[str, str, str], ...] = (
 )
 
 
-def lookup(values: Any, dotted: str) -> Any:
-    """values["a"]["b"] for "a.b", or None when any part is missing."""
-    node = values
-    for part in dotted.split("."):
-        if not isinstance(node, dict) or part not in node:
-            return None
-        node = node[part]
-    return node
-
-
 def write_report(out_dir: Path, context: ReportContext) -> Path:
     from toolkit import report_figures as F
     from toolkit.report_canvas import encode_png
@@ -90,9 +81,9 @@ def write_report(out_dir: Path, context: ReportContext) -> Path:
     fig_dir = out_dir / "figures"
     fig_dir.mkdir(parents=True, exist_ok=True)
     c = context
-    values = dict(c.metrics.values) if c.metrics is not None else {}
+    metrics = RunMetrics.of(c.metrics)
     per_point = c.metrics.per_point_error_m if c.metrics is not None else None
-    rows = list(values.get("segments") or []) or _segment_rows(c)
+    rows = list(metrics.segments or []) or _segment_rows(c)
     frame = _frame(c)
     missing: list[str] = []
     figures: list[tuple[str, bytes, str, str]] = []  # (file, PNG bytes, title, caption)
@@ -116,12 +107,12 @@ def write_report(out_dir: Path, context: ReportContext) -> Path:
     add("error_map.png", F.error_map(c.registration, per_point, c.overview, frame),
         "Per-point error map", "3D distance of every registered point from its true position "
         "(colour scale clipped at the 95th percentile).", "needs a registration and truth/street_points.npy")
-    add("error_histogram.png", F.error_histograms(values), "Error distribution (cf. paper Fig. 8)",
+    add("error_histogram.png", F.error_histograms(metrics), "Error distribution (cf. paper Fig. 8)",
         "Distances of the mutually nearest pairs between the registered cloud and the reference cloud "
-        f"(pairs beyond {values.get('cutoff_m', 10):g} m ignored), and errors against the truth.",
+        f"(pairs beyond {_cutoff_m(metrics):g} m ignored), and errors against the truth.",
         "needs evaluate metrics with a reference cloud or truth")
 
-    page = _page(c, values, rows, figures, missing, out_dir)
+    page = _page(c, metrics, rows, figures, missing, out_dir)
     path = out_dir / "report.html"
     path.write_text(page, encoding="utf-8")
     return path
@@ -142,22 +133,26 @@ def _frame(c: ReportContext):
     return Frame(0.0, 0.0)
 
 
-def _segment_rows(c: ReportContext) -> list[dict]:
+def _cutoff_m(metrics: RunMetrics) -> float:
+    return 10 if metrics.cutoff_m is None else metrics.cutoff_m
+
+
+def _segment_rows(c: ReportContext) -> list[SegmentRow]:
     """Rows from matches/transforms when the metrics have none (no evaluate step)."""
     if c.street is None:
         return []
     rows = []
     for s in range(len(c.street)):
         m = int(c.matches.segment_match[s]) if c.matches is not None else None
-        rows.append({
-            "index": s, "id": int(c.street.ids[s]),
-            "n_points": int((c.street.point_labels == s).sum()),
-            "overview_id": int(c.overview.ids[m]) if (m is not None and m >= 0 and c.overview is not None) else None,
-            "match_cost": float(c.matches.cost[s]) if c.matches is not None else None,
-            "match_confidence": float(c.matches.confidence[s]) if c.matches is not None else None,
-            "refine_valid": bool(c.transforms.valid[s]) if c.transforms is not None else None,
-            "refine_cost": float(c.transforms.cost[s]) if c.transforms is not None else None,
-        })
+        rows.append(SegmentRow(
+            index=s, id=int(c.street.ids[s]),
+            n_points=int((c.street.point_labels == s).sum()),
+            overview_id=int(c.overview.ids[m]) if (m is not None and m >= 0 and c.overview is not None) else None,
+            match_cost=float(c.matches.cost[s]) if c.matches is not None else None,
+            match_confidence=float(c.matches.confidence[s]) if c.matches is not None else None,
+            refine_valid=bool(c.transforms.valid[s]) if c.transforms is not None else None,
+            refine_cost=float(c.transforms.cost[s]) if c.transforms is not None else None,
+        ))
     return rows
 
 
@@ -197,11 +192,12 @@ def _assessment(assessment: Any) -> str:
             "see docs/status.md; every figure is in metrics.json under <code>assessment</code>.</p>")
 
 
-def _headline(values: dict) -> str:
+def _headline(metrics: RunMetrics) -> str:
+    figures = metrics.key_figures()
     cards = []
-    for label, path, fmt in HEADLINE:
-        parts = [lookup(values, p) for p in path.split("|")]
-        if any(not isinstance(v, (int, float)) for v in parts):
+    for label, names, fmt in HEADLINE:
+        parts = [getattr(figures, name) for name in names]
+        if any(v is None for v in parts):
             continue
         cards.append(f'<div class="card"><div class="v">{html.escape(fmt.format(*parts))}</div>'
                      f'<div class="l">{html.escape(label)}</div></div>')
@@ -209,10 +205,10 @@ def _headline(values: dict) -> str:
         return ('<p class="missing">No metrics against a reference cloud or truth: the recipe has no evaluate '
                 "step, or it had nothing to compare with.</p>")
     html_cards = '<div class="cards">' + "".join(cards) + "</div>"
-    paired = lookup(values, "chamfer.3d.paired_fraction")
-    if isinstance(paired, (int, float)):
+    paired = figures.paired_fraction
+    if paired is not None:
         html_cards += (f'<p class="note">{paired:.0%} of the street points found a mutually nearest reference '
-                       f'point within {values.get("cutoff_m", 10):g} m, and the Chamfer numbers describe those '
+                       f'point within {_cutoff_m(metrics):g} m, and the Chamfer numbers describe those '
                        "points alone. Different densities keep this share low even for a perfect registration, "
                        "and misplaced points simply stop pairing: compare the share between runs, and read the "
                        "errors against the truth when the scene has it.</p>")
@@ -228,21 +224,21 @@ SEGMENT_COLUMNS = (
 )
 
 
-def _segment_table(rows: list[dict]) -> str:
+def _segment_table(rows: list[SegmentRow]) -> str:
     if not rows:
         return '<p class="missing">No street segments (the recipe has no street step).</p>'
-    cols = [col for col in SEGMENT_COLUMNS if any(r.get(col[0]) is not None for r in rows)]
+    cols = [col for col in SEGMENT_COLUMNS if any(getattr(r, col[0]) is not None for r in rows)]
     head = "".join(f"<th>{html.escape(t)}</th>" for _, t, _ in cols)
     body = []
     for r in rows:
-        cls = "" if r.get("correct") is None else (' class="ok"' if r["correct"] else ' class="bad"')
-        cells = "".join(f"<td>{_fmt(r.get(k), f) if f else _fmt(r.get(k))}</td>" for k, _, f in cols)
+        cls = "" if r.correct is None else (' class="ok"' if r.correct else ' class="bad"')
+        cells = "".join(f"<td>{_fmt(getattr(r, k), f) if f else _fmt(getattr(r, k))}</td>" for k, _, f in cols)
         body.append(f"<tr{cls}>{cells}</tr>")
     return f'<div class="scroll"><table class="seg"><tr>{head}</tr>{"".join(body)}</table></div>'
 
 
-def _timings_table(timings: dict[str, float], values: dict) -> str:
-    t = dict(timings or values.get("timings_s") or {})
+def _timings_table(timings: dict[str, float], metrics: RunMetrics) -> str:
+    t = dict(timings or metrics.timings_s or {})
     if not t:
         return '<p class="missing">No timings recorded.</p>'
     total = sum(t.values()) or 1.0
@@ -280,7 +276,8 @@ def _title(c: ReportContext) -> str:
     return str(recipe_name or scene_name or "run")
 
 
-def _page(c: ReportContext, values: dict, rows: list[dict], figures, missing: list[str], out_dir: Path) -> str:
+def _page(c: ReportContext, metrics: RunMetrics, rows: list[SegmentRow], figures, missing: list[str],
+          out_dir: Path) -> str:
     from toolkit.report_links import links_html
 
     name = c.title or _title(c)
@@ -295,20 +292,20 @@ def _page(c: ReportContext, values: dict, rows: list[dict], figures, missing: li
         counts.append(f"{len(c.overview)} over-view segments ({html.escape(c.overview.source or '?')})")
     if c.matches is not None:
         counts.append(f"{int((c.matches.segment_match >= 0).sum())} matched")
-    notes = list(values.get("notes") or [])
-    warn = list(c.warnings or values.get("warnings") or [])
+    notes = list(metrics.notes or [])
+    warn = list(c.warnings or metrics.warnings or [])
     parts = [
         f"<h1>crossview report — {html.escape(name)}</h1>",
         f'<p class="sub">{scene_line}<br>{" · ".join(counts) or "nothing computed"}</p>',
         _assessment(c.assessment),
-        "<h2>Results</h2>", _headline(values),
+        "<h2>Results</h2>", _headline(metrics),
         "<h2>Figures</h2>", '<div class="figs">', *(_figure_html(*f) for f in figures), "</div>",
     ]
     if missing:
         parts.append('<div class="missing"><b>Not shown:</b><ul>' +
                      "".join(f"<li>{html.escape(m)}</li>" for m in missing) + "</ul></div>")
     parts += ["<h2>Segments</h2>", _segment_table(rows),
-              "<h2>Timings</h2>", _timings_table(c.timings, values)]
+              "<h2>Timings</h2>", _timings_table(c.timings, metrics)]
     if warn or notes:
         parts.append("<h2>Warnings and notes</h2><ul>" +
                      "".join(f'<li class="warn">{html.escape(w)}</li>' for w in warn) +

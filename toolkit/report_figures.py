@@ -9,13 +9,16 @@ are drawn as rasters of the panel's own pixels (``toolkit.point_raster``), frame
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from PIL import Image, ImageDraw
 
 from toolkit.point_raster import dilate_max, inferno_r_lut, largest_value, overview_mask, topmost
 from toolkit.report_canvas import SMALL_PX, Canvas, Panel, fit_equal, rgb
+
+if TYPE_CHECKING:
+    from toolkit.metrics_model import Histogram, RunMetrics, SegmentRow
 
 MAX_PLOT_POINTS = 80_000  # 1 px dots at about the density of the former 40k matplotlib dots (~1.5 px wide)
 SEGMENT_COLOURS = np.array([
@@ -128,7 +131,8 @@ def _plus_markers(draw: ImageDraw.ImageDraw, cols: np.ndarray, rows: np.ndarray,
         draw.line((c, r - arm_px, c, r + arm_px), fill=(0, 0, 0))
 
 
-def matches_view(street, overview, matches, registration, segment_rows: list[dict], frame: Frame) -> Image.Image | None:
+def matches_view(street, overview, matches, registration, segment_rows: list[SegmentRow],
+                 frame: Frame) -> Image.Image | None:
     """Each matched street segment (registered façade points) linked to its over-view segment."""
     if matches is None or street is None or overview is None or registration is None:
         return None
@@ -147,7 +151,7 @@ def matches_view(street, overview, matches, registration, segment_rows: list[dic
     kinds = [UNMATCHED, UNKNOWN, OK, BAD]  # drawn in this order: a wrong match on top
     seg_kind = np.zeros(S, np.int64)
     for s in range(S):
-        correct = segment_rows[s].get("correct") if s < len(segment_rows) else None
+        correct = segment_rows[s].correct if s < len(segment_rows) else None
         if matches.segment_match[s] >= 0:
             seg_kind[s] = 1 if correct is None else (2 if correct else 3)
     panel = map_panel((0, 0, 750, 660), xy_seg if len(xy_seg) else frame.xy(registration.points))
@@ -197,15 +201,15 @@ def error_map(registration, per_point_error, overview, frame: Frame) -> Image.Im
     return canvas.image
 
 
-def _histogram_panel(canvas: Canvas, box_px: tuple[int, int, int, int], title: str, d: dict[str, Any]) -> None:
-    h = d["histogram"]
-    counts = np.asarray(h["counts"], float)
-    edges = [e for e in h["edges_m"] if e is not None]
+def _histogram_panel(canvas: Canvas, box_px: tuple[int, int, int, int], title: str, h: Histogram,
+                     mean: float | None, std: float | None) -> None:
+    counts = np.asarray(h.counts, float)
+    edges = [e for e in h.edges_m if e is not None]
     last = edges[-1] + (edges[-1] - edges[-2] if len(edges) > 1 else 1.0)
     edges = np.asarray(edges + ([last] if len(edges) == len(counts) else []), float)
     total = counts.sum()
     frac = counts / total if total else counts
-    overflow = h["edges_m"][-1] is None and counts[-1] > 0
+    overflow = h.edges_m[-1] is None and counts[-1] > 0
     # show up to the bin holding the 99.5th percentile (an overflow bin is always shown)
     cum = np.cumsum(counts) / total if total else np.ones(len(counts))
     k = len(counts) - 1 if overflow or not total else int(np.searchsorted(cum, 0.995))
@@ -219,8 +223,6 @@ def _histogram_panel(canvas: Canvas, box_px: tuple[int, int, int, int], title: s
     _, rows = panel.to_local_px(0.0, frac * 100)
     for i in np.flatnonzero(frac > 0):
         draw.rectangle((cols[i], rows[i], cols[i + 1], panel.height), fill=rgb("#4c72b0"))
-    mean = d.get("mean_m", (d.get("error_3d") or {}).get("mean_m"))
-    std = d.get("std_m")
     if mean is not None:
         col = float(panel.to_local_px(mean, 0.0)[0])
         draw.line((col, 0, col, panel.height), fill=rgb("#c44e52"), width=2)
@@ -234,16 +236,20 @@ def _histogram_panel(canvas: Canvas, box_px: tuple[int, int, int, int], title: s
     canvas.axes(panel, title, "distance (m)", "% of pairs" if "Chamfer" in title else "% of points", title_px=14)
 
 
-def error_histograms(values: dict[str, Any]) -> Image.Image | None:
+def error_histograms(metrics: RunMetrics) -> Image.Image | None:
     """Like the paper's Fig. 8: distribution of Chamfer pair distances (and truth errors)."""
-    chamfer = values.get("chamfer") or {}
-    truth = values.get("truth") or {}
-    panels = [(f"Chamfer pairs, {k.upper()} (paper metric)", chamfer[k]) for k in ("3d", "2d") if chamfer.get(k)]
-    if truth.get("histogram"):
-        panels.append(("per-point error vs truth, 3D", truth))
+    panels = []  # (title, histogram, mean, std)
+    if metrics.chamfer is not None:
+        for dims, stats in (("3D", metrics.chamfer.d3), ("2D", metrics.chamfer.d2)):
+            if stats is not None and stats.histogram is not None:
+                panels.append((f"Chamfer pairs, {dims} (paper metric)", stats.histogram, stats.mean_m, stats.std_m))
+    truth = metrics.truth
+    if truth is not None and truth.histogram is not None:
+        mean = truth.error_3d.mean_m if truth.error_3d is not None else None
+        panels.append(("per-point error vs truth, 3D", truth.histogram, mean, None))
     if not panels:
         return None
     canvas = Canvas(460 * len(panels), 380)
-    for i, (title, d) in enumerate(panels):
-        _histogram_panel(canvas, (460 * i, 0, 460, 380), title, d)
+    for i, (title, histogram, mean, std) in enumerate(panels):
+        _histogram_panel(canvas, (460 * i, 0, 460, 380), title, histogram, mean, std)
     return canvas.image

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from typing import Any
-
 from rich.console import Console
 from rich.table import Table
+
+from toolkit.metrics_model import RunMetrics
 
 # Truth-free figures, shown first: (label, "|"-joined keys of the assessment figures, format)
 STATUS_ROWS: tuple[tuple[str, str, str], ...] = (
@@ -19,34 +19,25 @@ STATUS_ROWS: tuple[tuple[str, str, str], ...] = (
     ("GPS residual of the cameras, median", "gps_residual_median_m", "{:.2f} m"),
 )
 
-# (label, path in metrics.json, unit)
+# The evaluation's figures: (label, toolkit.metrics_model.KeyFigures attribute, unit)
 SUMMARY_ROWS: tuple[tuple[str, str, str], ...] = (
-    ("per-point error, horizontal median", "truth.horizontal.median_m", "m"),
-    ("per-point error, horizontal mean", "truth.horizontal.mean_m", "m"),
-    ("per-point error, 3D median", "truth.error_3d.median_m", "m"),
-    ("per-point error, 3D p95", "truth.error_3d.p95_m", "m"),
-    ("Chamfer 2D mean (paper metric)", "chamfer.2d.mean_m", "m"),
-    ("Chamfer 3D mean (paper metric)", "chamfer.3d.mean_m", "m"),
-    ("share of points paired", "chamfer.3d.paired_fraction", ""),
-    ("segment match precision", "matching.precision", ""),
-    ("segment match recall", "matching.recall", ""),
-    ("camera centre error, median", "cameras.centre_error_median_m", "m"),
+    ("per-point error, horizontal median", "error_h_median_m", "m"),
+    ("per-point error, horizontal mean", "error_h_mean_m", "m"),
+    ("per-point error, 3D median", "error_3d_median_m", "m"),
+    ("per-point error, 3D p95", "error_3d_p95_m", "m"),
+    ("Chamfer 2D mean (paper metric)", "chamfer_2d_mean_m", "m"),
+    ("Chamfer 3D mean (paper metric)", "chamfer_3d_mean_m", "m"),
+    ("share of points paired", "paired_fraction", ""),
+    ("segment match precision", "match_precision", ""),
+    ("segment match recall", "match_recall", ""),
+    ("camera centre error, median", "camera_median_m", "m"),
 )
-
-
-def lookup(values: dict[str, Any], dotted: str) -> Any:
-    node: Any = values
-    for part in dotted.split("."):
-        if not isinstance(node, dict) or part not in node:
-            return None
-        node = node[part]
-    return node
 
 
 def print_summary(res, console: Console | None = None) -> None:
     console = console or Console()
     metrics = res.results.get("metrics")
-    values = dict(metrics.values) if metrics is not None else {}
+    figures = RunMetrics.of(metrics).key_figures()
     table = Table(title=f"crossview — {res.out_dir}", show_header=True, header_style="bold")
     table.add_column("measure")
     table.add_column("value", justify="right")
@@ -62,9 +53,9 @@ def print_summary(res, console: Console | None = None) -> None:
 
     if res.scene is not None and height_kind(res.scene, res.results.get("overview")) == "relative":
         table.add_row("heights", "relative: no DSM or terrain model, street ground at 0 m")
-    for label, path, unit in SUMMARY_ROWS:
-        v = lookup(values, path)
-        if isinstance(v, (int, float)):
+    for label, name, unit in SUMMARY_ROWS:
+        v = getattr(figures, name)
+        if v is not None:
             table.add_row(label, f"{v:.3f} {unit}".strip())
     for step, seconds in res.timings.items():
         table.add_row(f"time: {step}", f"{seconds:.2f} s")

@@ -1,5 +1,5 @@
 """``evaluate.chamfer``'s scores against the truth (per-point errors, segment matches, camera
-centres) and metrics.json's per-segment table (schema in plugins/evaluate_chamfer.py)."""
+centres) and metrics.json's per-segment table (schema: toolkit.metrics_model)."""
 
 from __future__ import annotations
 
