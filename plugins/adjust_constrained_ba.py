@@ -31,11 +31,12 @@ from toolkit.adjust.model import (
     rms_px,
     warp_points3d,
 )
+from toolkit.capture import StreetCapture
 from toolkit.forked import forks, run_forked
 from toolkit.io.colmap import replace_poses
 from toolkit.refine.blas import single_threaded_blas
 from toolkit.stage import Stage, StageParams
-from toolkit.types import AdjustedCameras, Registration, Scene
+from toolkit.types import AdjustedCameras, Registration, Scene, SparseModel
 
 
 class ConstrainedBA(Stage):
@@ -76,15 +77,12 @@ class ConstrainedBA(Stage):
         # free (toolkit.forked); with more Ceres threads it uses the cores itself
         return self.params.threads == 1 and forks()
 
-    def __call__(self, registration: Registration, scene: Scene, obs) -> AdjustedCameras:
+    def __call__(self, registration: Registration, scene: Scene, capture: StreetCapture, obs) -> AdjustedCameras:
         with single_threaded_blas():
-            return self._run(registration, scene, obs)
+            return self._run(registration, capture.require_sparse("adjust"), obs)
 
-    def _run(self, registration: Registration, scene: Scene, obs) -> AdjustedCameras:
-        from toolkit.scene import load_sparse
-
+    def _run(self, registration: Registration, model: SparseModel, obs) -> AdjustedCameras:
         p = self.params
-        model = load_sparse(scene, "adjust")
         R_w, t_w = registered_poses(model, registration)
         X_w = warp_points3d(model, R_w, t_w)
         warped_px = residuals(model, R_w, t_w, X_w)

@@ -53,7 +53,7 @@ def run_one(recipe_path: str, scene_dir: str, out_dir: str, overrides: list[str]
         if res.assessment is not None:
             row.update(status=res.assessment.status, confidence=res.assessment.confidence,
                        reason=res.assessment.main_reason if not res.assessment.reliable else "")
-        metrics = res.results.get("metrics")
+        metrics = res.results.metrics
         values = dict(metrics.values) if metrics is not None else {}
         for col, path in COLUMNS:
             row[col] = lookup(values, path)
