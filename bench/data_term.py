@@ -69,6 +69,7 @@ def main() -> None:
 
     import numpy as np
 
+    from toolkit.capture import StreetCapture
     from toolkit.observe import NullObserver
     from toolkit.registry import Registry
     from toolkit.scene import load_array, load_scene
@@ -89,7 +90,8 @@ def main() -> None:
     overview, t_ov = _cached(cache / f"{tag}-{args.overview}.pkl",
                              lambda: _stage(reg, args.overview, {})(scene, obs), not args.no_cache)
     street, t_st = _cached(cache / f"{tag}-street.region_growing.pkl",
-                           lambda: _stage(reg, "street.region_growing", {})(scene, obs), not args.no_cache)
+                           lambda: _stage(reg, "street.region_growing", {})(scene, StreetCapture(scene), obs),
+                           not args.no_cache)
 
     c0, t0 = time.process_time(), time.perf_counter()
     gparams = {"k": args.k} | ({"overview_k": args.overview_k} if args.overview_k else {})
@@ -99,7 +101,7 @@ def main() -> None:
     t1 = time.perf_counter()
     unary_scene = dataclasses.replace(scene, files=dataclasses.replace(scene.files, gps=None)) \
         if args.no_gps else scene
-    costs = unary(graphs, street, overview, unary_scene, obs)
+    costs = unary(graphs, street, overview, unary_scene, StreetCapture(unary_scene), obs)
     t_unary = time.perf_counter() - t1
     cpu = time.process_time() - c0
     t2 = time.perf_counter()

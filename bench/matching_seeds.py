@@ -36,6 +36,7 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
 from refine_warp_ba import cache_path  # noqa: E402
+from toolkit.capture import StreetCapture  # noqa: E402
 from toolkit.observe import NullObserver  # noqa: E402
 from toolkit.recipe import load_recipe  # noqa: E402
 from toolkit.runner import build  # noqa: E402
@@ -75,7 +76,8 @@ def front(recipe_path: Path, scene_dir: Path, cache_dir: Path, use_gps: bool, ov
     # cached under another configuration (e.g. the terrace split on) is never reused
     street_key, ov_key = cache_path(plan, scene_dir, "street"), cache_path(plan, scene_dir, "overview")
     street = _load_or_run(cache_dir / street_key.name, street_key,
-                          lambda: stages["street"][1](scene=scene, obs=obs), f"{scene_dir.name} street")
+                          lambda: stages["street"][1](scene=scene, capture=plan.capture, obs=obs),
+                          f"{scene_dir.name} street")
     ov_spec = stages["overview"][0]
     overview = _load_or_run(cache_dir / ov_key.name, ov_key,
                             lambda: stages["overview"][1](scene=scene, obs=obs), f"{scene_dir.name} {ov_spec.use}")
@@ -92,7 +94,8 @@ def front(recipe_path: Path, scene_dir: Path, cache_dir: Path, use_gps: bool, ov
     def make_front():
         graphs = stages["graph"][1](street=street, overview=overview, obs=obs)
         t0 = time.perf_counter()
-        costs = stages["unary"][1](graphs=graphs, street=street, overview=overview, scene=unary_scene, obs=obs)
+        costs = stages["unary"][1](graphs=graphs, street=street, overview=overview, scene=unary_scene,
+                                   capture=StreetCapture(unary_scene), obs=obs)
         timing["unary"] = time.perf_counter() - t0
         return graphs, costs
 

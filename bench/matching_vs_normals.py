@@ -25,6 +25,7 @@ def main() -> int:
     ap.add_argument("--recipe", action="append", default=[], help="recipes whose steps are used (default: all three)")
     args = ap.parse_args()
 
+    from toolkit.capture import StreetCapture
     from toolkit.observe import NullObserver
     from toolkit.recipe import load_recipe
     from toolkit.runner import build
@@ -40,13 +41,15 @@ def main() -> int:
         stages = {spec.name: stage for spec, stage in plan.stages}
         obs = NullObserver()
         overview = stages["overview"](scene=scene, obs=obs)
-        street = stages["street"](scene=scene, obs=obs)
+        capture = StreetCapture(scene)
+        street = stages["street"](scene=scene, capture=capture, obs=obs)
         points = load_points(scene)
         before = normals_pass_seconds(points)
         t0 = time.perf_counter()
         graphs = stages["graph"](street=street, overview=overview, obs=obs)
         t1 = time.perf_counter()
-        costs = stages["unary"](graphs=graphs, street=street, overview=overview, scene=scene, obs=obs)
+        costs = stages["unary"](graphs=graphs, street=street, overview=overview, scene=scene, capture=capture,
+                                obs=obs)
         t2 = time.perf_counter()
         matches = stages["match"](graphs=graphs, costs=costs, obs=obs)
         t3 = time.perf_counter()

@@ -58,14 +58,14 @@ def cache_path(plan, scene_dir: Path, kind: str) -> Path:
     """Where step ``kind``'s output is cached: keyed by the scene, the stages' source and the specs of
     the step and of every step it depends on (street is shared by recipes that differ only in the
     over-view source)."""
-    from toolkit.stage import KIND_INPUTS, KIND_OUTPUT
+    from toolkit.stage import KIND_INPUTS, KIND_OUTPUT, RUN_INPUTS
 
     kind_of = {v: k for k, v in KIND_OUTPUT.items()}
     specs = {spec.name: f"{spec.use}{sorted(spec.params.items())}" for spec, _ in plan.stages}
     stamp = f"{scene_dir.resolve()}|{(scene_dir / 'scene.yaml').stat().st_mtime_ns}|{code_stamp()}"
 
     def key(k: str) -> str:
-        deps = [kind_of[n] for n in KIND_INPUTS[k] if n != "scene"]
+        deps = [kind_of[n] for n in KIND_INPUTS[k] if n not in RUN_INPUTS]
         return specs[k] + "|" + "|".join(key(d) for d in deps)
 
     h = hashlib.sha1((stamp + key(kind)).encode()).hexdigest()[:16]
@@ -90,7 +90,7 @@ def upstream(recipe_path: Path, scene_dir: Path, refresh: bool) -> dict:
     from toolkit.stage import KIND_INPUTS, KIND_OUTPUT
 
     plan = build(load_recipe(recipe_path), scene=scene_dir)
-    results = {"scene": plan.scene}
+    results = {"scene": plan.scene, "capture": plan.capture}
     for spec, stage in plan.stages:
         if spec.name not in UPSTREAM:
             continue
@@ -179,6 +179,7 @@ def run(scene_dir: Path, recipe: str, args) -> None:
     res = upstream(REPO / "recipes" / recipe, scene_dir, args.refresh)
     scene, street, overview, matches, graphs = (res["scene"], res["street"], res["overview"], res["matches"],
                                                 res["graphs"])
+    capture = res["capture"]
     truth = load_array(scene, "truth_street_points")
     inp = load_points(scene, "street_cloud")
     rigid = kabsch_error(inp, truth)
@@ -191,7 +192,7 @@ def run(scene_dir: Path, recipe: str, args) -> None:
     for refiner in refiners:
         obs = NullObserver()
         t0, c0 = time.perf_counter(), time.process_time()
-        tr = refiner(matches, street, overview, scene, obs, graphs=graphs)
+        tr = refiner(matches, street, overview, scene, capture, obs, graphs=graphs)
         t_refine = time.perf_counter() - t0
         print(f"  {refiner.key()}: {t_refine:.2f} s ({time.process_time() - c0:.2f} s CPU), "
               f"valid {tr.valid.sum()}/{len(tr.valid)}", flush=True)
@@ -202,7 +203,7 @@ def run(scene_dir: Path, recipe: str, args) -> None:
         warp_params = {**recipe_params(REPO / "recipes" / recipe, "warp", InverseLog), **_overrides(args.warp)}
         for warp in (InverseLog.from_config(warp_params), Nearest()):
             t0, c0 = time.perf_counter(), time.process_time()
-            reg = warp(tr, street, scene, NullObserver())
+            reg = warp(tr, street, scene, capture, NullObserver())
             t_warp = time.perf_counter() - t0
             c_warp = time.process_time() - c0
             regs[warp.name] = (reg, t_warp)
@@ -220,7 +221,7 @@ def run(scene_dir: Path, recipe: str, args) -> None:
             + ([ConstrainedBA.from_config({**ba, "backend": "scipy"})] if args.scipy else [])
         for adj in adjusters:
             t0 = time.perf_counter()
-            out = adj(reg, scene, NullObserver())
+            out = adj(reg, scene, capture, NullObserver())
             t_adj = time.perf_counter() - t0
             extra = ""
             if C_true is not None:

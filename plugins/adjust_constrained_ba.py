@@ -35,6 +35,7 @@ from toolkit.adjust.model import (
     warp_points3d,
 )
 from toolkit.adjust.remake import remake_registration
+from toolkit.capture import StreetCapture
 from toolkit.forked import forks, run_forked
 from toolkit.io.colmap import replace_poses
 from toolkit.refine.blas import single_threaded_blas
@@ -89,15 +90,13 @@ class ConstrainedBA(Stage):
         # free (toolkit.forked); with more Ceres threads it uses the cores itself
         return self.params.threads == 1 and forks()
 
-    def __call__(self, registration: Registration, scene: Scene, obs) -> AdjustedCameras:
+    def __call__(self, registration: Registration, scene: Scene, capture: StreetCapture, obs) -> AdjustedCameras:
         with single_threaded_blas():
-            return self._run(registration, scene, obs)
+            return self._run(registration, capture, obs)
 
-    def _run(self, registration: Registration, scene: Scene, obs) -> AdjustedCameras:
-        from toolkit.scene import load_points, load_sparse
-
+    def _run(self, registration: Registration, capture: StreetCapture, obs) -> AdjustedCameras:
         p = self.params
-        model = load_sparse(scene, "adjust")
+        model = capture.require_sparse("adjust")
         R_w, t_w = registered_poses(model, registration)
         X_w = warp_points3d(model, R_w, t_w)
         warped_px = residuals(model, R_w, t_w, X_w)
@@ -144,8 +143,7 @@ class ConstrainedBA(Stage):
         residual_px = residuals(model, res.R, res.t, X)
         adjusted = replace_poses(model, res.R, res.t, X, point_errors_px(model, residual_px))
         # every observation names capture cameras, also those the adjustment dropped
-        remade = remake_registration(registration, load_points(scene, "street_cloud", "adjust"), load_sparse(
-            scene, "adjust"), res.R, res.t, p.capture_sparse_gap_m) if self.remakes() and scene.has("street_cloud") \
-            else None
+        remade = remake_registration(registration, capture.points, capture.require_sparse("adjust"), res.R, res.t,
+                                     p.capture_sparse_gap_m) if self.remakes() and capture.cloud_path else None
         return AdjustedCameras(adjusted, before, rms_px(residual_px), iterations, remade)
 

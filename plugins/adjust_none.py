@@ -7,10 +7,11 @@ it) and the reprojection RMS of the warped model is reported (before = after).
 from __future__ import annotations
 
 from toolkit.adjust.model import point_errors_px, registered_poses, residuals, rms_px, warp_points3d
+from toolkit.capture import StreetCapture
 from toolkit.io.colmap import replace_poses
 from toolkit.refine.blas import single_threaded_blas
 from toolkit.stage import Stage, StageParams
-from toolkit.types import AdjustedCameras, Registration, Scene
+from toolkit.types import AdjustedCameras, Registration, Scene, SparseModel
 
 
 class NoAdjust(Stage):
@@ -26,14 +27,11 @@ class NoAdjust(Stage):
     def scene_needs(cls, params) -> tuple[str, ...]:
         return ("sparse",)
 
-    def __call__(self, registration: Registration, scene: Scene, obs) -> AdjustedCameras:
+    def __call__(self, registration: Registration, scene: Scene, capture: StreetCapture, obs) -> AdjustedCameras:
         with single_threaded_blas():
-            return self._run(registration, scene, obs)
+            return self._run(registration, capture.require_sparse("adjust"), obs)
 
-    def _run(self, registration: Registration, scene: Scene, obs) -> AdjustedCameras:
-        from toolkit.scene import load_sparse
-
-        model = load_sparse(scene, "adjust")
+    def _run(self, registration: Registration, model: SparseModel, obs) -> AdjustedCameras:
         R, t = registered_poses(model, registration)
         X = warp_points3d(model, R, t)
         residual_px = residuals(model, R, t, X)

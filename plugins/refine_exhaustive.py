@@ -38,15 +38,17 @@ from __future__ import annotations
 
 from pydantic import Field
 
+from toolkit.capture import StreetCapture
 from toolkit.params import GroupedParams, group
 from toolkit.refine.blas import single_threaded_blas
 from toolkit.refine.finish import ConsistencyParams, warn_rejected
-from toolkit.refine.ground3d import GroundParams
+from toolkit.refine.ground3d import GroundParams, height_source
 from toolkit.refine.joint import JointConfig
 from toolkit.refine.passes import (Placement, Refinement, checked, finished, matched_items, neighbour_pass,
                                    propagate, register, route_pass, set_scales)
 from toolkit.refine.scale import ScaleConfig
 from toolkit.refine.search2d import SearchParams
+from toolkit.scene import overview_heights
 from toolkit.stage import Stage, StageParams
 from toolkit.types import Matches, OverviewSegments, Scene, SegmentTransforms, StreetSegments
 
@@ -88,11 +90,12 @@ class Exhaustive(Stage):
         return ("street_cloud",)
 
     def __call__(self, matches: Matches, street: StreetSegments, overview: OverviewSegments, scene: Scene,
-                 obs, graphs=None) -> SegmentTransforms:
+                 capture: StreetCapture, obs, graphs=None) -> SegmentTransforms:
         p: ExhaustiveParams = self.params  # type: ignore[assignment]
         with single_threaded_blas():
-            r = Refinement.of(street, overview, scene, graphs, obs, search=p.search, ground=p.ground,
-                              consistency=p.consistency, route_aware=p.route_aware,
+            heights = height_source(overview_heights(scene, "refine"), overview)
+            r = Refinement.of(street, overview, capture, graphs, obs, heights=heights, search=p.search,
+                              ground=p.ground, consistency=p.consistency, route_aware=p.route_aware,
                               footprint_cell_m=p.footprint_cell_m, max_footprint_points=p.max_footprint_points,
                               min_inlier_ratio=p.min_inlier_ratio)
             # 1. the matched segments: tilt, exhaustive 2D search, height; then the consistency check

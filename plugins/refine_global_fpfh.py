@@ -16,8 +16,9 @@ import numpy as np
 from pydantic import Field
 
 from plugins.refine_rigid_oracle import uniform_transforms
+from toolkit.capture import StreetCapture
 from toolkit.refine.fpfh import register_fpfh
-from toolkit.scene import load_points
+from toolkit.scene import load_cloud
 from toolkit.stage import Stage, StageParams
 from toolkit.types import ConjugateGraphs, Matches, OverviewSegments, Scene, SegmentTransforms, StreetSegments
 
@@ -50,10 +51,10 @@ class GlobalFpfh(Stage):
         return ("street_cloud", "overview_cloud")
 
     def __call__(self, matches: Matches, street: StreetSegments, overview: OverviewSegments, scene: Scene,
-                 obs: Any, graphs: ConjugateGraphs | None = None) -> SegmentTransforms:
+                 capture: StreetCapture, obs: Any, graphs: ConjugateGraphs | None = None) -> SegmentTransforms:
         p = self.params
-        src = load_points(scene, "street_cloud", who="refine.global_fpfh")
-        dst = load_points(scene, "overview_cloud", who="refine.global_fpfh")
+        src = capture.points
+        dst = load_cloud(scene, "overview_cloud", who="refine.global_fpfh")
         pre = street.levelling if p.use_levelling else np.eye(4)
         T, fitness, rmse = register_fpfh(src @ pre[:3, :3].T + pre[:3, 3], dst, p)
         T = T @ pre

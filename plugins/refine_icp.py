@@ -16,12 +16,14 @@ from typing import Literal
 
 from pydantic import Field
 
+from toolkit.capture import StreetCapture
 from toolkit.params import GroupedParams, group
 from toolkit.refine.blas import single_threaded_blas
 from toolkit.refine.finish import ConsistencyParams, finish
-from toolkit.refine.ground3d import GroundParams
+from toolkit.refine.ground3d import GroundParams, height_source
 from toolkit.refine.icp import IcpParams
-from toolkit.refine.icp_segments import IcpFits, IcpTargets, overview_cloud, register_segment
+from toolkit.refine.icp_segments import IcpFits, IcpTargets, overview_cloud, register_segment, uses_cloud
+from toolkit.scene import load_cloud, overview_heights
 from toolkit.stage import Stage
 from toolkit.types import Matches, OverviewSegments, Scene, SegmentTransforms, StreetSegments
 
@@ -46,10 +48,14 @@ class IcpRefine(Stage):
         return ("street_cloud", "overview_cloud") if params.target == "cloud" else ("street_cloud",)
 
     def __call__(self, matches: Matches, street: StreetSegments, overview: OverviewSegments, scene: Scene,
-                 obs, graphs=None) -> SegmentTransforms:
+                 capture: StreetCapture, obs, graphs=None) -> SegmentTransforms:
         p: IcpRefineParams = self.params  # type: ignore[assignment]
         with single_threaded_blas():
-            targets = IcpTargets.of(street, overview, scene, overview_cloud(scene, p.target))
+            cloud = None
+            if uses_cloud(scene, p.target):
+                cloud = overview_cloud(load_cloud(scene, "overview_cloud", "refine.icp"), scene.files.overview_cloud)
+            heights = height_source(overview_heights(scene, "refine"), overview)
+            targets = IcpTargets.of(street, overview, capture, cloud, heights)
             fits = IcpFits.empty(len(street))
             discarded = 0
             for i in obs.progress(range(len(street)), total=len(street), desc="icp segments"):

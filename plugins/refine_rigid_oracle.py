@@ -13,9 +13,10 @@ from typing import Any
 import numpy as np
 from pydantic import Field
 
+from toolkit.capture import StreetCapture
 from toolkit.errors import SceneError, StageError
 from toolkit.evaluation.metrics import apply_transform, rigid_fit, subsample
-from toolkit.scene import load_array, load_points
+from toolkit.scene import load_array
 from toolkit.stage import Stage, StageParams
 from toolkit.types import ConjugateGraphs, Matches, OverviewSegments, Scene, SegmentTransforms, StreetSegments
 
@@ -36,8 +37,8 @@ class RigidOracle(Stage):
         return ("street_cloud", "truth_street_points")
 
     def __call__(self, matches: Matches, street: StreetSegments, overview: OverviewSegments, scene: Scene,
-                 obs: Any, graphs: ConjugateGraphs | None = None) -> SegmentTransforms:
-        pts = load_points(scene, "street_cloud", who="refine.rigid_oracle")
+                 capture: StreetCapture, obs: Any, graphs: ConjugateGraphs | None = None) -> SegmentTransforms:
+        pts = capture.points
         true = load_array(scene, "truth_street_points")
         if true.shape != pts.shape:
             raise SceneError(f"{scene.files.truth_street_points}: shape {true.shape} does not match the "

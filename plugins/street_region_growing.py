@@ -21,7 +21,7 @@ import numpy as np
 from pydantic import Field
 from threadpoolctl import threadpool_limits
 
-from toolkit.scene import load_points
+from toolkit.capture import StreetCapture
 from toolkit.stage import Stage, StageParams
 from toolkit.street.absorb import AbsorbConfig
 from toolkit.street.associate import associate
@@ -92,8 +92,8 @@ class RegionGrowing(Stage):
     def scene_needs(cls, params: StageParams) -> tuple[str, ...]:
         return ("street_cloud",)
 
-    def __call__(self, scene: Scene, obs: Any) -> StreetSegments:
-        return self.segment(load_points(scene, "street_cloud", who=WHO), obs)
+    def __call__(self, scene: Scene, capture: StreetCapture, obs: Any) -> StreetSegments:
+        return self.segment(capture.points, obs)
 
     def segment(self, points: np.ndarray, obs: Any) -> StreetSegments:
         """Segment an (N,3) cloud given as an array (the scene-free entry point); seconds per step go to

@@ -23,6 +23,7 @@ from typing import Literal
 
 from pydantic import Field
 
+from toolkit.capture import StreetCapture
 from toolkit.matching import data_term as DT
 from toolkit.matching import pose_search as PS
 from toolkit.matching.anchors import AnchorConfig, outline_anchors
@@ -72,20 +73,18 @@ class DistanceMap(Stage):
 
     @classmethod
     def scene_needs(cls, params: StageParams) -> tuple[str, ...]:
-        return ()  # street/gps.csv is optional: checked with scene.has("gps")
+        return ()  # street/gps.csv is optional: checked with capture.gps_path
 
     def prefetch_inputs(self) -> tuple[str, ...]:
-        return ("overview", "scene")
+        return ("overview", "capture")
 
-    def prefetch(self, overview: OverviewSegments, scene: Scene) -> CropAtlas:
+    def prefetch(self, overview: OverviewSegments, capture: StreetCapture | None) -> CropAtlas:
         """The distance atlas: it needs only the over-view, so the runner builds it while the
         street step runs. The COLMAP model that the free-space term and GPS pruning read is read
-        here too (``load_sparse`` keeps it): 0.3 s of text parsing on campus."""
-        uses_probes = self.params.free_space.used_with(scene)
-        if scene is not None and scene.has("sparse") and (uses_probes or scene.has("gps")):
-            from toolkit.scene import load_sparse
-
-            load_sparse(scene, who="unary.distance_map")
+        here too (the scene's reader keeps it): 0.3 s of text parsing on campus."""
+        uses_probes = self.params.free_space.used_with(capture)
+        if capture is not None and capture.sparse_path is not None and (uses_probes or capture.gps_path is not None):
+            capture.require_sparse("unary.distance_map")
         return self._atlas(overview, uses_probes)
 
     def _atlas(self, overview: OverviewSegments, with_inside: bool) -> CropAtlas:
@@ -94,7 +93,7 @@ class DistanceMap(Stage):
                                  with_inside)
 
     def __call__(self, graphs: ConjugateGraphs, street: StreetSegments, overview: OverviewSegments,
-                 scene: Scene, obs, prefetched: CropAtlas | None = None) -> DataCosts:
+                 scene: Scene, capture: StreetCapture | None, obs, prefetched: CropAtlas | None = None) -> DataCosts:
         p = self.params
         costs = DT.null_costs(graphs.n_nodes, graphs.n_labels)
         if graphs.n_nodes == 0 or graphs.n_labels == 1:
@@ -103,7 +102,7 @@ class DistanceMap(Stage):
         t0 = time.perf_counter()
         geo = pair_geometry(graphs, street, overview)
         # 1. the prior: GPS fixes, else the route placed by its façades, else none
-        prior = DT.choose_prior(scene, street, overview, p.gps, p.route_prior, obs)
+        prior = DT.choose_prior(capture, street, overview, p.gps, p.route_prior, obs)
         # 2. the candidates passing the length, extent and prior tests, at their centre-line pose
         cand = select_candidates(geo, street, prior, p.prune, offset_cap_m=p.pose.offset_cap_m,
                                  offset_window_scale=p.pose.offset_window_scale,
@@ -115,8 +114,8 @@ class DistanceMap(Stage):
         # 3. street points (fine and a nested coarse subset), dominant walls, free-space probes
         samples = PS.street_samples(street, geo, p.pose, p.chamfer.directional)
         probes = None
-        if p.free_space.used_with(scene):
-            probes = DT.free_space_probes(scene, street, samples, geo, p.free_space, stats)
+        if p.free_space.used_with(capture):
+            probes = DT.free_space_probes(capture.sparse, street, samples, geo, p.free_space, stats)
         levels = PS.search_levels(p.search, p.pose)
         atlas = prefetched if prefetched is not None else self._atlas(overview, probes is not None)
         score = PS.Scorer(atlas, geo.A, p.max_elements, probes, p.free_space.weight, p.workers)

@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 from pydantic import Field
 
+from toolkit.capture import StreetCapture
 from toolkit.stage import Stage, StageParams
 from toolkit.types import Registration, Scene, SegmentTransforms, StreetSegments
 from toolkit.warp.apply import PassCheck, warp_scene
@@ -73,9 +74,10 @@ class InverseLog(Stage):
     def scene_needs(cls, params) -> tuple[str, ...]:
         return ("street_cloud",)
 
-    def __call__(self, transforms: SegmentTransforms, street: StreetSegments, scene: Scene, obs) -> Registration:
+    def __call__(self, transforms: SegmentTransforms, street: StreetSegments, scene: Scene, capture: StreetCapture,
+                 obs) -> Registration:
         p = self.params
-        return warp_scene(transforms, street, scene, p.neighbours_k, p.min_distance_m, p.neighbour_gap_m,
+        return warp_scene(transforms, street, capture, p.neighbours_k, p.min_distance_m, p.neighbour_gap_m,
                           p.neighbour_gap_ratio, np.inf if p.max_neighbour_gap_m is None else p.max_neighbour_gap_m,
                           p.weight_cell_m, PassCheck(p.pass_gap_m, p.pass_sparse_gap_m),
                           relative=p.relative_distance, camera_k=p.camera_neighbours_k)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from pydantic import Field
 
+from toolkit.capture import StreetCapture
 from toolkit.stage import Stage, StageParams
 from toolkit.types import Registration, Scene, SegmentTransforms, StreetSegments
 from toolkit.warp.apply import PassCheck, warp_scene
@@ -34,6 +35,7 @@ class Nearest(Stage):
     def scene_needs(cls, params) -> tuple[str, ...]:
         return ("street_cloud",)
 
-    def __call__(self, transforms: SegmentTransforms, street: StreetSegments, scene: Scene, obs) -> Registration:
+    def __call__(self, transforms: SegmentTransforms, street: StreetSegments, scene: Scene, capture: StreetCapture,
+                 obs) -> Registration:
         p = self.params
-        return warp_scene(transforms, street, scene, 0, 2.0, passes=PassCheck(p.pass_gap_m, p.pass_sparse_gap_m))
+        return warp_scene(transforms, street, capture, 0, 2.0, passes=PassCheck(p.pass_gap_m, p.pass_sparse_gap_m))

@@ -8,7 +8,7 @@ from pydantic import Field
 from toolkit.errors import StageError
 from toolkit.observe import DebugImage, DebugScalar
 from toolkit.registry import Registry
-from toolkit.scene import load_points, load_raster
+from toolkit.scene import load_raster
 from toolkit.stage import Stage, StageParams
 from toolkit.types import (
     OverviewSegments, Registration, SegmentTransforms, StreetSegments, Matches, ConjugateGraphs,
@@ -53,12 +53,12 @@ class FakeStreet(Stage):
     def scene_needs(cls, params):
         return ("street_cloud",)
 
-    def __call__(self, scene, obs):
+    def __call__(self, scene, capture, obs):
         if self.params.fail:
             raise StageError("no façade points found")
         if self.params.interrupt:
             raise KeyboardInterrupt
-        p = load_points(scene)
+        p = capture.points
         n = len(p)
         for k in obs.progress(range(3), total=3, desc="fake"):
             obs.debug("iter", DebugScalar(float(k)), it=k, timeline="street_iter")
@@ -84,7 +84,7 @@ class FakeUnary(Stage):
     """No costs."""
     kind, name = "unary", "fake"
 
-    def __call__(self, graphs, street, overview, scene, obs):
+    def __call__(self, graphs, street, overview, scene, capture, obs):
         return DataCosts(np.ones((0, 1)), np.zeros((0, 0)), np.zeros((0, 0, 2)))
 
 
@@ -101,7 +101,7 @@ class FakeRefine(Stage):
     """Translation that moves the street centroid onto the over-view centroid."""
     kind, name = "refine", "fake"
 
-    def __call__(self, matches, street, overview, scene, obs, graphs=None):
+    def __call__(self, matches, street, overview, scene, capture, obs, graphs=None):
         T = np.eye(4)
         T[:2, 3] = overview.centroids[0]
         return SegmentTransforms(T[None] @ street.levelling, np.array([True]), np.zeros(1), np.ones(1))
@@ -111,8 +111,8 @@ class FakeWarp(Stage):
     """Applies segment 0's transform to every point."""
     kind, name = "warp", "fake"
 
-    def __call__(self, transforms, street, scene, obs):
-        p = load_points(scene)
+    def __call__(self, transforms, street, scene, capture, obs):
+        p = capture.points
         T = transforms.T[0]
         pts = p @ T[:3, :3].T + T[:3, 3]
         return Registration(pts, (), np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(len(p), np.int32))

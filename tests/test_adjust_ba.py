@@ -10,6 +10,7 @@ import pytest
 from plugins.adjust_constrained_ba import ConstrainedBA
 from plugins.adjust_none import NoAdjust
 from tests.refine_warp_world import ba_problem
+from toolkit.capture import StreetCapture
 from toolkit.adjust.ba import degenerate_centres
 from toolkit.adjust.model import project, residuals, rms_px, warp_points3d
 from toolkit.io.colmap import read_model, write_model
@@ -46,7 +47,7 @@ def _centre_error(R, t, truth):
 
 def test_constrained_ba_reaches_the_pixel_noise_and_improves_the_cameras(problem):
     model, reg, truth, scene = problem
-    out = ConstrainedBA()(reg, scene, NullObserver())
+    out = ConstrainedBA()(reg, scene, StreetCapture(scene), NullObserver())
     assert out.model.image_names == model.image_names
     assert out.model.points3d.shape == model.points3d.shape
     assert out.rms_before_px > 5 * NOISE_PX
@@ -60,8 +61,8 @@ def test_constrained_ba_reaches_the_pixel_noise_and_improves_the_cameras(problem
 
 def test_scipy_backend_solves_the_same_problem(small_problem):
     _, reg, truth, scene = small_problem
-    ceres = ConstrainedBA()(reg, scene, NullObserver())
-    scipy = ConstrainedBA.from_config({"backend": "scipy"})(reg, scene, NullObserver())
+    ceres = ConstrainedBA()(reg, scene, StreetCapture(scene), NullObserver())
+    scipy = ConstrainedBA.from_config({"backend": "scipy"})(reg, scene, StreetCapture(scene), NullObserver())
     assert scipy.rms_after_px <= 1.2 * NOISE_PX
     assert abs(scipy.rms_after_px - ceres.rms_after_px) < 0.02
     # 14 cameras leave a flat valley: equal costs (within 0.5 %) 10 cm apart, both near the truth
@@ -72,7 +73,7 @@ def test_scipy_backend_solves_the_same_problem(small_problem):
 @pytest.mark.parametrize("backend", ["ceres", "scipy"])
 def test_infinite_lambda_keeps_the_warped_positions(small_problem, backend):
     _, reg, _, scene = small_problem
-    out = ConstrainedBA.from_config({"lambda_": 1e9, "backend": backend})(reg, scene, NullObserver())
+    out = ConstrainedBA.from_config({"lambda_": 1e9, "backend": backend})(reg, scene, StreetCapture(scene), NullObserver())
     warped = -np.einsum("cba,cb->ca", reg.R, reg.t)
     assert np.abs(out.model.centres - warped).max() < 1e-3
     assert out.rms_after_px < out.rms_before_px       # rotations and points still adjust
@@ -83,21 +84,21 @@ def test_lambda_trades_positions_against_reprojection(small_problem):
     warped = -np.einsum("cba,cb->ca", reg.R, reg.t)
     moves = []
     for lam in (1.0, 20.0, 1e4):
-        out = ConstrainedBA.from_config({"lambda_": lam})(reg, scene, NullObserver())
+        out = ConstrainedBA.from_config({"lambda_": lam})(reg, scene, StreetCapture(scene), NullObserver())
         moves.append(np.linalg.norm(out.model.centres - warped, axis=1).mean())
     assert moves[0] > moves[1] > moves[2]
 
 
 def test_no_adjust_returns_the_warped_poses(problem):
     _, reg, _, scene = problem
-    out = NoAdjust()(reg, scene, NullObserver())
+    out = NoAdjust()(reg, scene, StreetCapture(scene), NullObserver())
     assert np.allclose(out.model.R, reg.R) and np.allclose(out.model.t, reg.t)
     assert out.iterations == 0 and out.rms_before_px == out.rms_after_px > 5 * NOISE_PX
 
 
 def test_adjusted_model_writes_as_text_and_binary(problem, tmp_path):
     _, reg, _, scene = problem
-    out = ConstrainedBA()(reg, scene, NullObserver())
+    out = ConstrainedBA()(reg, scene, StreetCapture(scene), NullObserver())
     for binary in (False, True):
         path = tmp_path / ("bin" if binary else "txt")
         write_model(out.model, path, binary=binary)
@@ -114,7 +115,8 @@ def test_degenerate_centres_go_to_scipy_with_a_warning(small_problem, tmp_path):
     flat = dataclasses.replace(reg, t=-np.einsum("cab,cb->ca", reg.R, C))
     assert degenerate_centres(C) and not degenerate_centres(-np.einsum("cba,cb->ca", reg.R, reg.t))
     obs = NullObserver()
-    out = ConstrainedBA()(flat, _scene(tmp_path, model), obs)
+    scene = _scene(tmp_path, model)
+    out = ConstrainedBA()(flat, scene, StreetCapture(scene), obs)
     assert any("scipy" in w for w in obs.warnings)
     assert out.rms_after_px < out.rms_before_px
 
@@ -157,11 +159,13 @@ def test_gross_outlier_observations_are_removed_and_adjusted_again(tmp_path):
     ob[hit, 2:4] += rng.choice([-1, 1], (30, 2)) * rng.uniform(30, 80, (30, 2))     # mismatched features
     model = dataclasses.replace(model, observations=ob)
     obs = NullObserver()
-    out = ConstrainedBA()(reg, _scene(tmp_path, model), obs)
+    scene = _scene(tmp_path, model)
+    out = ConstrainedBA()(reg, scene, StreetCapture(scene), obs)
     assert any("removed" in w for w in obs.warnings)
     assert len(model.observations) - 60 <= len(out.model.observations) <= len(model.observations) - 30
     assert out.rms_after_px <= 1.2 * NOISE_PX
-    kept = ConstrainedBA.from_config({"max_reproj_error_px": None})(reg, _scene(tmp_path / "b", model), NullObserver())
+    other = _scene(tmp_path / "b", model)
+    kept = ConstrainedBA.from_config({"max_reproj_error_px": None})(reg, other, StreetCapture(other), NullObserver())
     assert len(kept.model.observations) == len(model.observations) and kept.rms_after_px > 2 * NOISE_PX
 
 
@@ -169,10 +173,10 @@ def test_ceres_in_a_child_process_gives_the_same_bytes(small_problem, monkeypatc
     from toolkit.forked import forks
 
     model, reg, truth, scene = small_problem
-    here_or_child = ConstrainedBA()(reg, scene, NullObserver())
+    here_or_child = ConstrainedBA()(reg, scene, StreetCapture(scene), NullObserver())
     monkeypatch.setenv("OMP_NUM_THREADS", "1")  # one thread: the solve runs in this process
     assert not forks() and ConstrainedBA().holds_gil()  # so nothing is prefetched beside it
-    here = ConstrainedBA()(reg, scene, NullObserver())
+    here = ConstrainedBA()(reg, scene, StreetCapture(scene), NullObserver())
     for a, b in ((here.model.R, here_or_child.model.R), (here.model.t, here_or_child.model.t),
                  (here.model.points3d, here_or_child.model.points3d)):
         assert a.tobytes() == b.tobytes()
@@ -188,9 +192,9 @@ def test_prior_variances_add_the_warp_spread_to_one_over_lambda():
 
 def test_camera_spread_loosens_only_the_cameras_the_warp_places_uncertainly(small_problem):
     model, reg, truth, scene = small_problem
-    plain = ConstrainedBA.from_config({"prior_spread": False})(reg, scene, NullObserver())
+    plain = ConstrainedBA.from_config({"prior_spread": False})(reg, scene, StreetCapture(scene), NullObserver())
     zero = ConstrainedBA()(dataclasses.replace(reg, camera_spread_m=np.zeros(len(reg.image_names))), scene,
-                           NullObserver())
+                           StreetCapture(scene), NullObserver())
     assert np.allclose(zero.model.t, plain.model.t, atol=1e-9)        # no spread: the paper's λ
     # one camera's warped centre pushed 3 m off, with a matching spread: the images bring it back
     # closer than with the paper's uniform λ
@@ -200,7 +204,7 @@ def test_camera_spread_loosens_only_the_cameras_the_warp_places_uncertainly(smal
     off = dataclasses.replace(reg, t=-np.einsum("cab,cb->ca", reg.R, C))
     spread = np.zeros(len(reg.image_names))
     spread[k] = 3.0
-    held = ConstrainedBA.from_config({"prior_spread": False})(off, scene, NullObserver())
-    loose = ConstrainedBA()(dataclasses.replace(off, camera_spread_m=spread), scene, NullObserver())
+    held = ConstrainedBA.from_config({"prior_spread": False})(off, scene, StreetCapture(scene), NullObserver())
+    loose = ConstrainedBA()(dataclasses.replace(off, camera_spread_m=spread), scene, StreetCapture(scene), NullObserver())
     err = lambda m: np.linalg.norm(m.centres[k] - truth["Cs"][k])
     assert err(loose.model) < err(held.model)

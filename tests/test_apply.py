@@ -25,7 +25,7 @@ def test_the_stored_warp_reloads_as_the_run_built_it():
     from toolkit.warp.store import load_warp
 
     res, _ = tiny_run("ply")
-    warp, stored = res.results["registration"].warp, load_warp(res.out_dir)
+    warp, stored = res.results.registration.warp, load_warp(res.out_dir)
     assert stored.crs == "EPSG:32617" and np.allclose(stored.las_offset_m % 100, 0)
     w = stored.warp
     assert np.array_equal(w.T, warp.T) and np.array_equal(w.index.valid, warp.index.valid)
@@ -75,7 +75,7 @@ def test_a_laz_cloud_keeps_its_dimensions_and_lands_on_the_registered_points(tmp
     extra = input_attributes(len(xyz))
     assert np.array_equal(las.intensity, extra["intensity"]) and np.array_equal(las.reflectance, extra["reflectance"])
     assert np.array_equal(las.red, rgb[:, 0].astype(np.uint16) * 257)
-    reg = res.results["registration"].points
+    reg = res.results.registration.points
     # the input's 0.1 mm steps and the output's 1 mm ones: within 1 mm of the registered points, but
     # for the few that the 0.1 mm steps put in the next 0.5 m weight cell (its blend: mm away)
     err = np.abs(np.column_stack([las.x, las.y, las.z]) - reg).max(axis=1)
@@ -113,7 +113,7 @@ def test_a_ply_mesh_moves_its_vertices_like_the_points_and_keeps_its_faces(tmp_p
         face.tofile(fh)
     out = apply_run(res.out_dir, path, tmp_path / "moved.ply").out
     got, values = _ply(out)
-    reg = res.results["registration"].points[rows]
+    reg = res.results.registration.points[rows]
     assert np.abs(got - reg).max() < 0.005     # float32 input vertices: a few hundredths of a mm off
     assert np.array_equal(values["quality"], vert["quality"])
     assert out.read_bytes().endswith(face.tobytes())
@@ -136,10 +136,10 @@ def test_an_obj_mesh_moves_vertices_and_turns_normals(tmp_path):
     out = apply_run(res.out_dir, path).out
     assert out == res.out_dir / "mesh.registered.obj"
     mesh = read_obj(out)
-    reg = res.results["registration"]
+    reg = res.results.registration
     assert np.abs(mesh.xyz - reg.points[rows]).max() < 0.001
     turned = mesh.vn[0]
-    own = np.asarray(res.results["transforms"].T)[reg.point_segment[rows[0]], :3, :3] @ [0, 0, 1]
+    own = np.asarray(res.results.transforms.T)[reg.point_segment[rows[0]], :3, :3] @ [0, 0, 1]
     assert abs(np.linalg.norm(turned) - 1) < 1e-5 and np.degrees(np.arccos(min(1.0, own @ turned))) < 5
     assert "vt 0.5 0.5" in out.read_text() and out.read_text().count("\nf ") == len(rows) - 2
     out.unlink()
@@ -157,7 +157,7 @@ def test_ply_normals_are_turned(tmp_path):
     apply_run(res.out_dir, tmp_path / "n.ply", tmp_path / "n_out.ply")
     _, values = _ply(tmp_path / "n_out.ply")
     turned = np.column_stack([values["nx"], values["ny"], values["nz"]]).astype(np.float64)
-    reg, T = res.results["registration"], np.asarray(res.results["transforms"].T)
+    reg, T = res.results.registration, np.asarray(res.results.transforms.T)
     own = T[reg.point_segment, :3, 2]
     angle = np.degrees(np.arccos(np.clip((own * turned).sum(axis=1), -1, 1)))
     assert np.median(angle) < 1.0 and angle.max() < 10.0

@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from plugins.refine_global_fpfh import GlobalFpfh
 from plugins.refine_rigid_oracle import RigidOracle
+from toolkit.capture import StreetCapture
 from toolkit.evaluation.metrics import apply_transform
 from toolkit.io.cloud import write_ply
 from toolkit.observe import NullObserver
@@ -94,7 +95,7 @@ def test_rigid_oracle_recovers_rigid_motion_and_fits_drift_best(tmp_path):
     bent[:, 2] += 0.002 * (street[:, 0] - street[:, 0].mean()) ** 2 / 10
     scene = _scene(tmp_path, bent, None, world)
     seg = _street(len(world))
-    out = RigidOracle()(None, seg, None, scene, NullObserver())
+    out = RigidOracle()(None, seg, None, scene, StreetCapture(scene), NullObserver())
     assert isinstance(out, SegmentTransforms)
     assert out.T.shape == (3, 4, 4) and out.valid.all()
     assert np.allclose(out.T[0], out.T[2])
@@ -104,7 +105,7 @@ def test_rigid_oracle_recovers_rigid_motion_and_fits_drift_best(tmp_path):
     # without the bend the oracle is exact
     (tmp_path / "b").mkdir()
     scene2 = _scene(tmp_path / "b", street, None, world)
-    out2 = RigidOracle()(None, seg, None, scene2, NullObserver())
+    out2 = RigidOracle()(None, seg, None, scene2, StreetCapture(scene2), NullObserver())
     assert np.allclose(out2.T[0], T, atol=1e-6)
     assert out2.cost.max() < 1e-6
 
@@ -115,7 +116,7 @@ def test_rigid_oracle_rejects_mismatched_truth(tmp_path):
     world = _city(2)[:500]
     scene = _scene(tmp_path, world, None, world[:-1])
     with pytest.raises(SceneError, match="truth.npy"):
-        RigidOracle()(None, _street(len(world)), None, scene, NullObserver())
+        RigidOracle()(None, _street(len(world)), None, scene, StreetCapture(scene), NullObserver())
 
 
 def test_global_fpfh_registers_the_same_geometry(tmp_path):
@@ -127,13 +128,13 @@ def test_global_fpfh_registers_the_same_geometry(tmp_path):
     scene = _scene(tmp_path, street, overview, None)
     params = GlobalFpfh.Params(voxel_m=1.0, normal_radius_m=2.0, feature_radius_m=5.0,
                                ransac_distance_m=1.5, icp_distance_m=1.5)
-    out = GlobalFpfh(params)(None, _street(len(street)), None, scene, NullObserver())
+    out = GlobalFpfh(params)(None, _street(len(street)), None, scene, StreetCapture(scene), NullObserver())
     est = apply_transform(out.T[0], street)
     err = np.linalg.norm(est - (world[::2] + UTM), axis=1)
     assert np.median(err) < 0.3, f"median error {np.median(err):.2f} m"
     assert out.valid.all() and np.allclose(out.T[0], out.T[-1])
     # deterministic for a fixed seed
-    out_again = GlobalFpfh(params)(None, _street(len(street)), None, scene, NullObserver())
+    out_again = GlobalFpfh(params)(None, _street(len(street)), None, scene, StreetCapture(scene), NullObserver())
     assert np.allclose(out_again.T, out.T, atol=1e-6)
 
 
@@ -158,16 +159,17 @@ def tiny_runs():
     plan = build(load_recipe(ROOT / "recipes" / "dsm.yaml", ["steps.adjust.use=adjust.none"]), scene=scene)
     results, _ = execute(plan)
     stages = {spec.name: stage for spec, stage in plan.stages}
-    runs = {"dsm": results["metrics"]}
+    runs = {"dsm": results.metrics}
     # a coarser voxel than the recipe's default keeps this test fast (features 4× fewer)
     coarse = GlobalFpfh.Params(voxel_m=2.0, normal_radius_m=4.0, feature_radius_m=10.0, ransac_distance_m=3.0,
                                icp_distance_m=4.0)
     for name, refine in (("oracle", RigidOracle()), ("open3d", GlobalFpfh(coarse))):
         obs = NullObserver()
-        T = refine(results["matches"], results["street"], results["overview"], results["scene"], obs)
-        reg = stages["warp"](transforms=T, street=results["street"], scene=results["scene"], obs=obs)
-        runs[name] = stages["evaluate"](registration=reg, scene=results["scene"], obs=obs, matches=results["matches"],
-                                        street=results["street"], overview=results["overview"], transforms=T)
+        T = refine(results.matches, results.street, results.overview, results.scene, results.capture, obs)
+        reg = stages["warp"](transforms=T, street=results.street, scene=results.scene, capture=results.capture,
+                             obs=obs)
+        runs[name] = stages["evaluate"](registration=reg, scene=results.scene, obs=obs, matches=results.matches,
+                                        street=results.street, overview=results.overview, transforms=T)
     return runs
 
 

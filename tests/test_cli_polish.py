@@ -19,6 +19,7 @@ import pytest
 
 import toolkit.registry as registry_mod
 from tests.fake_stages import FAKE_RECIPE, fake_registry
+from toolkit.capture import StreetCapture
 from toolkit.cli import main
 from toolkit.observe import NullObserver
 
@@ -169,7 +170,8 @@ def test_adjusted_points3d_error_column_is_the_mean_reprojection_error(stage, tm
     root = tmp_path / "scene"
     write_model(model, root / "street/sparse", binary=True)
     write_manifest(root, "ba", "EPSG:32617", {"street": {"sparse": "street/sparse"}})
-    out = (ConstrainedBA if stage == "constrained_ba" else NoAdjust)()(reg, load_scene(root), NullObserver()).model
+    scene = load_scene(root)
+    out = (ConstrainedBA if stage == "constrained_ba" else NoAdjust)()(reg, scene, StreetCapture(scene), NullObserver()).model
     res = np.linalg.norm(residuals(out, out.R, out.t, out.points3d), axis=1)
     pt = out.observations[:, 1].astype(int)
     count = np.bincount(pt, minlength=len(out.points3d))

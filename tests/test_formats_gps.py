@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from tests.conftest import REPO, synthetic_scene
+from toolkit.capture import StreetCapture
 from toolkit.cli import main
 from toolkit.errors import SceneError
 from toolkit.io.gps import match_images, read_gps_csv
@@ -100,10 +101,10 @@ def test_gps_prior_is_the_same_from_exiftool_fixes(tiny, tmp_path):
 
     scene = load_scene(tiny)
     street = _street(load_sparse(scene))
-    ref = gps_prior(scene, street)
+    ref = gps_prior(StreetCapture(scene), street)
     _write_exiftool(tmp_path / "exif.csv", _rows(tiny / "street/gps.csv"))
     other = dataclasses.replace(scene, files=dataclasses.replace(scene.files, gps=tmp_path / "exif.csv"))
-    got = gps_prior(other, street)
+    got = gps_prior(StreetCapture(other), street)
     assert got.n_fixes == ref.n_fixes == 201
     assert np.array_equal(got.position, ref.position) and np.array_equal(got.angle, ref.angle)
 

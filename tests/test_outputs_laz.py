@@ -35,11 +35,11 @@ def test_registered_laz_has_the_scene_crs_1mm_steps_colours_and_segments():
     assert names == ("red", "green", "blue", "segment")
     got = np.column_stack([las.x, las.y, las.z])
     assert np.abs(got - xyz).max() <= 0.0005 + 1e-9
-    assert np.abs(xyz - res.results["registration"].points).max() == 0
+    assert np.abs(xyz - res.results.registration.points).max() == 0
     _, rgb = tiny_cloud()
     assert np.array_equal(np.column_stack([las.red, las.green, las.blue]), rgb.astype(np.uint16) * 257)
     assert las.segment.dtype == np.int32 and np.array_equal(las.segment, values["segment"])
-    assert np.array_equal(values["segment"], res.results["registration"].point_segment)
+    assert np.array_equal(values["segment"], res.results.registration.point_segment)
 
 
 def test_crs_in_metrics_and_beside_the_colmap_model():
@@ -65,7 +65,7 @@ def test_a_laz_input_keeps_its_point_format_intensity_colours_and_extra_dims_in_
         assert np.array_equal(np.asarray(out[name]), extra[name]), name
     for name in ("red", "green", "blue", "gps_time", "return_number", "point_source_id"):
         assert np.array_equal(np.asarray(out[name]), np.asarray(src[name])), name
-    reg = res.results["registration"].points
+    reg = res.results.registration.points
     assert np.abs(np.column_stack([out.x, out.y, out.z]) - reg).max() <= 0.0005 + 1e-9
     xyz, values, names = _ply(res.out_dir / "registered.ply")
     assert names[:3] == ("intensity", "return_number", "number_of_returns") and names[-1] == "segment"
@@ -125,7 +125,7 @@ def test_ply_normals_are_turned_with_the_points(tmp_path):
     extra = {"nx": normals[:, 0].astype(np.float32), "ny": normals[:, 1].astype(np.float32),
              "nz": normals[:, 2].astype(np.float32)}
     write_ply(tmp_path / "in.ply", xyz, rgb, extra=extra)
-    reg, transforms = res.results["registration"], res.results["transforms"]
+    reg, transforms = res.results.registration, res.results.transforms
     source = open_cloud(tmp_path / "in.ply")
     grid = LasGrid.around(reg.points.min(axis=0), reg.points.max(axis=0))
     export_cloud(source, registration_mover(reg, transforms, source.normals), "EPSG:32617", grid,

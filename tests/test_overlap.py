@@ -68,10 +68,10 @@ def test_overlap_gives_the_same_results_and_warnings(plan, monkeypatch):
         results, timings = execute(plan(), obs, overlap=overlap)
         runs[overlap] = (results, list(timings), obs.warnings)
     (r0, t0, w0), (r1, t1, w1) = runs[False], runs[True]
-    assert list(r0) == list(r1) and t0 == t1 == ["overview", "street", "graph", "unary", "match", "refine", "warp"]
+    assert r0.made() == r1.made() and t0 == t1 == ["overview", "street", "graph", "unary", "match", "refine", "warp"]
     assert w0 == w1 == ["overview: from overview"]
-    np.testing.assert_array_equal(r0["overview"].label_image, r1["overview"].label_image)
-    np.testing.assert_array_equal(r0["registration"].points, r1["registration"].points)
+    np.testing.assert_array_equal(r0.overview.label_image, r1.overview.label_image)
+    np.testing.assert_array_equal(r0.registration.points, r1.registration.points)
 
 
 def test_independent_steps_really_run_side_by_side(plan, monkeypatch):
@@ -80,13 +80,13 @@ def test_independent_steps_really_run_side_by_side(plan, monkeypatch):
     for cls in (fake_stages.FakeOverview, fake_stages.FakeStreet):
         real = cls.__call__
 
-        def meet(self, scene, obs, _real=real):
+        def meet(self, *args, _real=real, **kwargs):
             barrier.wait()
-            return _real(self, scene, obs)
+            return _real(self, *args, **kwargs)
 
         monkeypatch.setattr(cls, "__call__", meet)
     results, _ = execute(plan(), NullObserver(), overlap=True)
-    assert results["street"].point_labels.size > 0
+    assert results.street.point_labels.size > 0
 
 
 def test_the_earlier_steps_error_wins(plan, monkeypatch):
@@ -125,11 +125,10 @@ class FakeAdjust(Stage):
     """The scene's COLMAP model as it is."""
     kind, name = "adjust", "fake"
 
-    def __call__(self, registration, scene, obs):
-        from toolkit.scene import load_sparse
+    def __call__(self, registration, scene, capture, obs):
         from toolkit.types import AdjustedCameras
 
-        return AdjustedCameras(load_sparse(scene), 0.0, 0.0, 0)
+        return AdjustedCameras(capture.sparse, 0.0, 0.0, 0)
 
 
 @pytest.fixture
@@ -147,7 +146,7 @@ def full_plan(tmp_path: Path, mini_scene: Path):
 def _metrics_json(results) -> str:
     import json
 
-    return json.dumps(results["metrics"].values, sort_keys=True, default=str)
+    return json.dumps(results.metrics.values, sort_keys=True, default=str)
 
 
 def test_prefetch_gives_the_same_metrics(full_plan, monkeypatch):
@@ -181,7 +180,7 @@ def test_prefetch_runs_beside_the_step_before(full_plan, monkeypatch):
 
         monkeypatch.setattr(cls, name, meet)
     results, _ = execute(full_plan, NullObserver(), overlap=True)
-    assert results["metrics"].values["street"]["n_points"] > 0
+    assert results.metrics.values["street"]["n_points"] > 0
 
 
 def test_no_prefetch_beside_a_step_that_holds_the_gil(full_plan, monkeypatch):
@@ -190,7 +189,7 @@ def test_no_prefetch_beside_a_step_that_holds_the_gil(full_plan, monkeypatch):
     monkeypatch.setattr(FakeAdjust, "holds_gil", lambda self: True)
     monkeypatch.setattr(Chamfer, "prefetch", lambda self, **kw: pytest.fail("prefetch beside a GIL holder"))
     results, _ = execute(full_plan, NullObserver(), overlap=True)
-    assert results["metrics"] is not None
+    assert results.metrics is not None
 
 
 def test_a_prefetch_error_is_the_evaluate_steps_error(full_plan, monkeypatch):
@@ -212,9 +211,9 @@ def test_a_prefetch_starts_after_the_background_step_while_the_next_one_runs(pla
     got = {}
     real_street = fake_stages.FakeStreet.__call__
 
-    def street(self, scene, obs):
+    def street(self, scene, capture, obs):
         barrier.wait()
-        return real_street(self, scene, obs)
+        return real_street(self, scene, capture, obs)
 
     def prefetch(self, overview, scene):
         barrier.wait()
@@ -231,7 +230,7 @@ def test_a_prefetch_starts_after_the_background_step_while_the_next_one_runs(pla
     monkeypatch.setattr(fake_stages.FakeUnary, "prefetch", prefetch)
     monkeypatch.setattr(fake_stages.FakeUnary, "__call__", unary)
     results, _ = execute(plan(), NullObserver(), overlap=True)
-    np.testing.assert_array_equal(got["prefetched"], results["overview"].ids)
+    np.testing.assert_array_equal(got["prefetched"], results.overview.ids)
 
 
 def test_map_in_order_keeps_the_item_order_within_the_budget(monkeypatch):

@@ -7,6 +7,7 @@ import pytest
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
+from toolkit.capture import StreetCapture
 from toolkit.refine.consistency import reject_inconsistent, reject_minor_components, reject_route_minorities
 from toolkit.refine.ground3d import GroundParams, HeightGrid, ground_step, trimmed_mean
 from toolkit.refine.search2d import SearchParams, search_segment
@@ -256,7 +257,7 @@ def test_route_positions_follow_the_cameras_that_observe_each_segment(tmp_path):
                             ids=np.arange(3), boundary_xy=tuple(pts[labels == s, :2] for s in range(3)),
                             centroids=np.array([[5.0, 5.0], [45.0, 5.0], [5.0, 6.0]]), extent_m=np.full(3, 10.0),
                             ground_z=np.zeros(3), ground_normal=np.tile([0, 0, 1.0], (3, 1)))
-    s = route_positions(street, load_scene(root), pts)
+    s = route_positions(street, StreetCapture(load_scene(root)).sparse, pts)
     assert np.allclose(s, [5.5, 45.5, 97.5 - 0.0], atol=1.0)
     keys = neighbour_keys(np.column_stack([street.centroids, np.zeros(3)]), s)
     d = np.linalg.norm(keys[:, None] - keys[None], axis=2)
@@ -418,5 +419,5 @@ def test_route_position_comes_from_the_facade_not_the_ground_it_carries(tmp_path
                             ids=np.arange(2), boundary_xy=(facade0[:, :2], facade1[:, :2]),
                             centroids=np.array([[5.0, 5.0], [45.0, 5.0]]), extent_m=np.full(2, 10.0),
                             ground_z=np.zeros(2), ground_normal=np.tile([0, 0, 1.0], (2, 1)))
-    s = route_positions(street, load_scene(root), pts)
+    s = route_positions(street, StreetCapture(load_scene(root)).sparse, pts)
     assert np.allclose(s, [5.5, 45.5], atol=1.0), s

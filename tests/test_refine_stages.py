@@ -10,6 +10,7 @@ import pytest
 from plugins.refine_exhaustive import Exhaustive
 from plugins.refine_icp import IcpRefine
 from tests.refine_warp_world import matches_for, world, write_scene
+from toolkit.capture import StreetCapture
 from toolkit.io.cloud import write_ply
 from toolkit.observe import NullObserver
 from toolkit.refine.transforms import apply
@@ -43,7 +44,7 @@ def _errors(w, tr):
 
 def test_exhaustive_recovers_every_segment_transform(small):
     w, scene = small
-    tr = Exhaustive()(matches_for(w, dxy=2.5, dth_deg=6.0), w["street"], w["overview"], scene, NullObserver())
+    tr = Exhaustive()(matches_for(w, dxy=2.5, dth_deg=6.0), w["street"], w["overview"], scene, StreetCapture(scene), NullObserver())
     assert tr.T.shape == (4, 4, 4) and tr.valid.all()
     err = _errors(w, tr)
     assert err[:, 0].max() < 0.05, err      # horizontal, metres
@@ -62,7 +63,7 @@ def _wrong_and_unmatched(w):
 def test_exhaustive_rejects_a_wrong_match_and_skips_unmatched(small):
     w, scene = small
     obs = NullObserver()
-    tr = Exhaustive.from_config({"propagate": False})(_wrong_and_unmatched(w), w["street"], w["overview"], scene, obs)
+    tr = Exhaustive.from_config({"propagate": False})(_wrong_and_unmatched(w), w["street"], w["overview"], scene, StreetCapture(scene), obs)
     assert tr.valid.tolist() == [False, True, False, True]
     assert tr.confidence[0] == 0 and tr.confidence[2] == 0
     assert any("inconsistent" in msg for msg in obs.warnings)
@@ -72,7 +73,7 @@ def test_exhaustive_rejects_a_wrong_match_and_skips_unmatched(small):
 def test_exhaustive_propagates_to_unmatched_and_rejected_segments(small):
     w, scene = small
     obs = NullObserver()
-    tr = Exhaustive()(_wrong_and_unmatched(w), w["street"], w["overview"], scene, obs)
+    tr = Exhaustive()(_wrong_and_unmatched(w), w["street"], w["overview"], scene, StreetCapture(scene), obs)
     assert tr.valid.all()
     assert any("propagation" in msg for msg in obs.warnings)
     err = _errors(w, tr)
@@ -83,12 +84,12 @@ def test_exhaustive_propagates_to_unmatched_and_rejected_segments(small):
 def test_exhaustive_without_consistency_keeps_the_wrong_match(small):
     w, scene = small
     params = {"check_consistency": False, "propagate": False, "neighbour_passes": 0}
-    tr = Exhaustive.from_config(params)(matches_for(w, wrong=(2,)), w["street"], w["overview"], scene, NullObserver())
+    tr = Exhaustive.from_config(params)(matches_for(w, wrong=(2,)), w["street"], w["overview"], scene, StreetCapture(scene), NullObserver())
     assert tr.valid[2]
     assert _errors(w, tr)[2, 0] > 10
     # the neighbour pass alone re-places it where its neighbours put it
     params["neighbour_passes"] = 1
-    tr = Exhaustive.from_config(params)(matches_for(w, wrong=(2,)), w["street"], w["overview"], scene, NullObserver())
+    tr = Exhaustive.from_config(params)(matches_for(w, wrong=(2,)), w["street"], w["overview"], scene, StreetCapture(scene), NullObserver())
     assert _errors(w, tr)[2, 0] < 0.05
 
 
@@ -108,7 +109,7 @@ class _DebugObserver(NullObserver):
 def test_exhaustive_sends_debug_only_when_wanted(small):
     w, scene = small
     obs = _DebugObserver()
-    Exhaustive()(matches_for(w), w["street"], w["overview"], scene, obs)
+    Exhaustive()(matches_for(w), w["street"], w["overview"], scene, StreetCapture(scene), obs)
     assert "footprints_registered" in obs.seen
 
 
@@ -116,7 +117,7 @@ def test_exhaustive_sends_debug_only_when_wanted(small):
 def test_icp_refines_the_match(small, target, tol_h):
     w, scene = small
     m = matches_for(w, dxy=2.5, dth_deg=4.0)
-    tr = IcpRefine.from_config({"target": target})(m, w["street"], w["overview"], scene, NullObserver())
+    tr = IcpRefine.from_config({"target": target})(m, w["street"], w["overview"], scene, StreetCapture(scene), NullObserver())
     assert tr.valid.all()
     err = _errors(w, tr)
     assert err[:, 0].max() < tol_h, err
@@ -140,10 +141,10 @@ def test_exhaustive_gives_the_same_bytes_with_its_searches_in_a_forked_child(sma
     w, scene = small
     m = matches_for(w, dxy=2.5, dth_deg=6.0)
     with thread_cap(1):
-        here = Exhaustive()(m, w["street"], w["overview"], scene, NullObserver())
+        here = Exhaustive()(m, w["street"], w["overview"], scene, StreetCapture(scene), NullObserver())
     # four segments: below the usual minimum, so fork for any number of them
     monkeypatch.setattr(refine_module, "map_chunks_forked", partial(refine_module.map_chunks_forked, min_jobs=2))
-    split = Exhaustive()(m, w["street"], w["overview"], scene, NullObserver())
+    split = Exhaustive()(m, w["street"], w["overview"], scene, StreetCapture(scene), NullObserver())
     for a, b in ((here.T, split.T), (here.valid, split.valid), (here.cost, split.cost),
                  (here.confidence, split.confidence)):
         assert a.tobytes() == b.tobytes()

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from tests.conftest import synthetic_scene
+from toolkit.capture import StreetCapture
 from toolkit.matching.route_prior import RoutePriorConfig, capture_order, place_route
 from toolkit.observe import NullObserver
 from toolkit.registry import Registry
@@ -18,7 +19,7 @@ from toolkit.scene import load_array, load_scene, load_sparse
 def tiny():
     scene = load_scene(synthetic_scene("tiny"))
     reg, obs = Registry(), NullObserver()
-    street = reg.get("street.region_growing").from_config({})(scene, obs)
+    street = reg.get("street.region_growing").from_config({})(scene, StreetCapture(scene), obs)
     overviews = {key: reg.get(key).from_config({})(scene, obs) for key in ("overview.osm", "overview.dsm_tophat")}
     return scene, street, overviews
 
@@ -69,9 +70,9 @@ def test_the_unary_stage_uses_the_placement_without_gps(tiny):
     reg, obs = Registry(), NullObserver()
     graphs = reg.get("graph.knn").from_config({})(street, overviews["overview.osm"], obs)
     unary = reg.get("unary.distance_map")
-    placed = unary.from_config({})(graphs, street, overviews["overview.osm"], no_gps, obs)
+    placed = unary.from_config({})(graphs, street, overviews["overview.osm"], no_gps, StreetCapture(no_gps), obs)
     full = unary.from_config({"route_prior": {"enabled": False}})(graphs, street, overviews["overview.osm"],
-                                                                 no_gps, obs)
+                                                                 no_gps, StreetCapture(no_gps), obs)
     assert not any("route placement not used" in w for w in obs.warnings)
     kept, searched = np.isfinite(placed.cost[:, :-1]).sum(), np.isfinite(full.cost[:, :-1]).sum()
     assert 0 < kept < searched / 3  # the placement prunes most pairs

@@ -7,6 +7,7 @@ import pytest
 from pydantic import ValidationError
 
 from plugins.street_region_growing import RegionGrowing
+from toolkit.capture import StreetCapture
 from toolkit.errors import StageError
 from toolkit.io.cloud import write_ply
 from toolkit.observe import DebugLines, DebugPoints, DebugScalar, NullObserver
@@ -182,7 +183,8 @@ def test_scene_entry_point(tmp_path, toy):
     write_ply(root / "street" / "cloud.ply", toy.points[::3])
     write_manifest(root, "toy", "EPSG:32617", {"street": {"cloud": "street/cloud.ply"}})
     assert RegionGrowing.scene_needs(RegionGrowing.Params()) == ("street_cloud",)
-    seg = RegionGrowing()(load_scene(root), NullObserver())
+    scene = load_scene(root)
+    seg = RegionGrowing()(scene, StreetCapture(scene), NullObserver())
     assert len(seg.point_labels) == len(toy.points[::3]) and len(seg) > 5
 
 

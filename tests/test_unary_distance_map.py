@@ -10,6 +10,7 @@ from pydantic import ValidationError
 
 from plugins.graph_knn import KnnGraph
 from plugins.unary_distance_map import DistanceMap
+from toolkit.capture import StreetCapture
 from toolkit.errors import StageError
 from toolkit.testing.matching_toy import make_toy, overview_from_labels, street_from_boundaries
 from toolkit.observe import DebugPoints2D, DebugText, NullObserver
@@ -55,7 +56,7 @@ def solved(toy, cameras):
     graphs = KnnGraph()(toy.street, toy.overview, NullObserver())
     # the exhaustive data term (no route placement), which the GPS tests below are compared with
     full = DistanceMap(DistanceMap.Params(route_prior={"enabled": False}))
-    return graphs, full(graphs, toy.street, toy.overview, cameras, NullObserver())
+    return graphs, full(graphs, toy.street, toy.overview, cameras, StreetCapture(cameras), NullObserver())
 
 
 def test_costs_follow_the_contract(solved):
@@ -107,7 +108,7 @@ def test_label_orders_are_symmetric(toy, solved, cameras):
     rev = street_from_boundaries(list(toy.street.boundary_xy[::-1]))
     g2 = KnnGraph()(rev, toy.overview, NullObserver())
     c2 = DistanceMap(DistanceMap.Params(route_prior={"enabled": False}))(g2, rev, toy.overview, cameras,
-                                                                         NullObserver())
+                                                                         StreetCapture(cameras), NullObserver())
     where = {tuple(e): i for i, e in enumerate(g2.street_edges.tolist())}
     diffs = []
     for e, (j, k) in enumerate(graphs.street_edges):
@@ -141,7 +142,7 @@ def _one_building(same_segment_labels: bool):
 def test_one_building_is_matched_through_the_same_segment_label():
     graphs, street, overview, theta = _one_building(True)
     assert graphs.n_labels == 3 and (graphs.label_pairs == 0).all()
-    costs = DistanceMap()(graphs, street, overview, None, NullObserver())
+    costs = DistanceMap()(graphs, street, overview, None, None, NullObserver())
     assert np.isfinite(costs.cost).all() and (costs.cost[:, :2] < 0.2).all()
     assert np.array_equal(costs.cost[:, 0], costs.cost[:, 1])   # 2f and 2f+1 coincide for (p, p)
     # right up to the rectangle's half-turn symmetry, which only the other edges can settle
@@ -152,7 +153,7 @@ def test_one_building_is_matched_through_the_same_segment_label():
 def test_one_building_without_same_segment_labels_leaves_only_null():
     graphs, street, overview, _ = _one_building(False)
     assert graphs.n_labels == 1
-    costs = DistanceMap()(graphs, street, overview, None, NullObserver())
+    costs = DistanceMap()(graphs, street, overview, None, None, NullObserver())
     assert costs.cost.shape == (graphs.n_nodes, 1) and (costs.cost == 1).all()
 
 
@@ -167,7 +168,7 @@ def test_nothing_in_common_scores_high(toy, solved):
         walls.append(c + np.stack([s, 2.5 * np.sin(1.3 * s)], axis=1))
     street = street_from_boundaries(walls)
     graphs = KnnGraph()(street, toy.overview, NullObserver())
-    costs = DistanceMap()(graphs, street, toy.overview, None, NullObserver())
+    costs = DistanceMap()(graphs, street, toy.overview, None, None, NullObserver())
     best_foreign = np.min(costs.cost, axis=1)
     best_true = np.min(solved[1].cost, axis=1)
     assert np.median(best_true) < 0.15
@@ -213,7 +214,7 @@ def test_gps_prunes_candidates_but_keeps_the_true_ones(tmp_path, toy, solved):
     graphs, costs = solved
     scene = _scene(tmp_path / "gps", toy)
     with_gps = DistanceMap(DistanceMap.Params(gps_radius_m=30))(graphs, toy.street, toy.overview, scene,
-                                                                 NullObserver())
+                                                                 StreetCapture(scene), NullObserver())
     n_without = np.isfinite(costs.cost[:, :-1]).sum()
     n_with = np.isfinite(with_gps.cost[:, :-1]).sum()
     assert n_with < 0.3 * n_without
@@ -231,8 +232,8 @@ def test_gps_pruned_candidates_are_infinite_and_survivors_obey_the_prior(tmp_pat
     graphs, _ = solved
     scene = _scene(tmp_path / "gps", toy)
     params = DistanceMap.Params(gps_radius_m=15)
-    costs = DistanceMap(params)(graphs, toy.street, toy.overview, scene, NullObserver())
-    prior = gps_prior(scene, toy.street)
+    costs = DistanceMap(params)(graphs, toy.street, toy.overview, scene, StreetCapture(scene), NullObserver())
+    prior = gps_prior(StreetCapture(scene), toy.street)
     e, lab = np.nonzero(np.isfinite(costs.cost[:, :-1]))
     assert len(e) > 0
     th, t = costs.theta_rad[e, lab], costs.t[e, lab]
@@ -252,7 +253,7 @@ def test_gps_heading_orients_same_segment_labels(tmp_path, toy, solved):
     or 180°: the true self-loop labels get the true rotation and a low cost."""
     graphs, _ = solved
     scene = _scene(tmp_path / "gps", toy)
-    costs = DistanceMap()(graphs, toy.street, toy.overview, scene, NullObserver())
+    costs = DistanceMap()(graphs, toy.street, toy.overview, scene, StreetCapture(scene), NullObserver())
     lab = true_labels(graphs, toy.truth)
     j, k = graphs.street_edges[:, 0], graphs.street_edges[:, 1]
     e = np.nonzero((lab >= 0) & (toy.truth[j] == toy.truth[k]))[0]
@@ -272,7 +273,7 @@ def test_gps_radius_widens_where_the_local_fit_residual_is_large(tmp_path, toy):
 
     from toolkit.matching.gps import gps_prior, prior_radii
 
-    clean = gps_prior(_scene(tmp_path / "clean", toy), toy.street)
+    clean = gps_prior(StreetCapture(_scene(tmp_path / "clean", toy)), toy.street)
     assert clean.fit_rms_m is not None and clean.fit_rms_m.shape == (len(toy.street),)
     assert np.all(3.0 * clean.fit_rms_m < 5.0 * 3.0)
     stage, fixed = DistanceMap(), DistanceMap(DistanceMap.Params(gps_radius_fit_sigmas=None))
@@ -285,7 +286,7 @@ def test_gps_radius_widens_where_the_local_fit_residual_is_large(tmp_path, toy):
     for r in rows[::2]:
         r[2] = f"{float(r[2]) + 30.0 / 111_000:.9f}"  # 30 m north
     scene.files.gps.write_text("\n".join([lines[0]] + [",".join(r) for r in rows]) + "\n")
-    bent = gps_prior(scene, toy.street)
+    bent = gps_prior(StreetCapture(scene), toy.street)
     assert np.all(bent.fit_rms_m > 10.0)
     radii = prior_radii(bent, len(toy.street), stage.params.gps)
     assert np.allclose(radii, 3.0 * bent.fit_rms_m + 5.0) and np.all(radii > base + 9.0)
@@ -297,10 +298,11 @@ def test_gps_radius_widens_where_the_local_fit_residual_is_large(tmp_path, toy):
 def test_gps_with_too_few_fixes_warns_and_falls_back_to_the_route_placement(tmp_path):
     small = make_toy((2, 2), seed=4)
     graphs = KnnGraph()(small.street, small.overview, NullObserver())
-    without = DistanceMap()(graphs, small.street, small.overview, _scene(tmp_path / "cams", small, gps=False),
-                            NullObserver())
+    cams = _scene(tmp_path / "cams", small, gps=False)
+    without = DistanceMap()(graphs, small.street, small.overview, cams, StreetCapture(cams), NullObserver())
     obs = NullObserver()
-    out = DistanceMap()(graphs, small.street, small.overview, _scene(tmp_path / "gps2", small, n_fixes=2), obs)
+    few = _scene(tmp_path / "gps2", small, n_fixes=2)
+    out = DistanceMap()(graphs, small.street, small.overview, few, StreetCapture(few), obs)
     assert any("GPS pruning off" in w for w in obs.warnings)
     assert np.array_equal(np.isfinite(out.cost), np.isfinite(without.cost))
 
@@ -311,7 +313,7 @@ def test_other_modes_find_the_true_labels(params):
     graphs = KnnGraph()(toy.street, toy.overview, NullObserver())
     # raw costs (no rescaling): the directional term raises every cost
     stage = DistanceMap(DistanceMap.Params(raw_cost_at_null=1.0, **params))
-    costs = stage(graphs, toy.street, toy.overview, None, NullObserver())
+    costs = stage(graphs, toy.street, toy.overview, None, None, NullObserver())
     lab = true_labels(graphs, toy.truth)
     e = np.nonzero(lab >= 0)[0]
     c = costs.cost[e, lab[e]]
@@ -327,7 +329,7 @@ def test_inconsistent_graph_is_a_stage_error(toy, solved):
                           graphs.overview_edges, graphs.label_pairs, graphs.conj_edges, graphs.conj_shared,
                           graphs.conjugate_graph)
     with pytest.raises(StageError, match="street segment"):
-        DistanceMap()(bad, toy.street, toy.overview, None, NullObserver())
+        DistanceMap()(bad, toy.street, toy.overview, None, None, NullObserver())
 
 
 def test_params_are_validated():
@@ -397,7 +399,7 @@ def test_debug_payloads(toy):
     toy2 = make_toy((2, 2), seed=4)
     graphs = KnnGraph()(toy2.street, toy2.overview, NullObserver())
     obs = RecordingObserver()
-    DistanceMap()(graphs, toy2.street, toy2.overview, None, obs)
+    DistanceMap()(graphs, toy2.street, toy2.overview, None, None, obs)
     assert isinstance(obs.records["stats"], DebugText)
     pts = obs.records["best_candidates"]
     assert isinstance(pts, DebugPoints2D) and len(pts.xy) > 0

@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 from plugins.warp_inverse_log import InverseLog
 from plugins.warp_nearest import Nearest
 from tests.refine_warp_world import world, write_scene
+from toolkit.capture import StreetCapture
 from toolkit.errors import StageError
 from toolkit.io.cloud import write_ply
 from toolkit.io.colmap import write_model
@@ -80,7 +81,7 @@ def _transforms(T, valid=None):
 def test_identical_segment_transforms_give_that_transform(scene_with_cameras, stage):
     w, scene, model = scene_with_cameras
     T = w["T_true"][1]
-    reg = stage(_transforms(np.repeat(T[None], 4, axis=0)), w["street"], scene, NullObserver())
+    reg = stage(_transforms(np.repeat(T[None], 4, axis=0)), w["street"], scene, StreetCapture(scene), NullObserver())
     assert reg.points.shape == w["inp"].shape and reg.points.dtype == np.float64
     assert np.abs(reg.points - apply(T, w["inp"])).max() < 1e-6
     assert reg.image_names == model.image_names
@@ -91,7 +92,7 @@ def test_identical_segment_transforms_give_that_transform(scene_with_cameras, st
 
 def test_nearest_uses_each_points_own_segment(scene_with_cameras):
     w, scene, _ = scene_with_cameras
-    reg = Nearest()(_transforms(w["T_true"]), w["street"], scene, NullObserver())
+    reg = Nearest()(_transforms(w["T_true"]), w["street"], scene, StreetCapture(scene), NullObserver())
     carried = w["carrier"] >= 0
     assert np.abs(reg.points[carried] - w["truth"][carried]).max() < 1e-6
     assert np.array_equal(reg.point_segment[carried], w["carrier"][carried])
@@ -101,7 +102,7 @@ def test_points_of_invalid_or_missing_segments_are_still_carried(scene_with_came
     w, scene, _ = scene_with_cameras
     valid = np.array([True, True, False, True])
     for stage in (InverseLog(), Nearest()):
-        reg = stage(_transforms(w["T_true"], valid), w["street"], scene, NullObserver())
+        reg = stage(_transforms(w["T_true"], valid), w["street"], scene, StreetCapture(scene), NullObserver())
         assert np.isfinite(reg.points).all() and len(reg.points) == len(w["inp"])
         assert set(np.unique(reg.point_segment)) <= {0, 1, 3}
         orphan = (w["carrier"] == 2) | (w["carrier"] < 0)
@@ -114,20 +115,20 @@ def test_points_of_invalid_or_missing_segments_are_still_carried(scene_with_came
 def test_cameras_blend_over_their_own_neighbour_count(scene_with_cameras):
     w, scene, _ = scene_with_cameras
     T = _transforms(w["T_true"])
-    both = InverseLog.from_config({"neighbours_k": 3})(T, w["street"], scene, NullObserver())
-    own = InverseLog.from_config({"neighbours_k": 3, "camera_neighbours_k": 0})(T, w["street"], scene, NullObserver())
-    near = Nearest()(T, w["street"], scene, NullObserver())
+    both = InverseLog.from_config({"neighbours_k": 3})(T, w["street"], scene, StreetCapture(scene), NullObserver())
+    own = InverseLog.from_config({"neighbours_k": 3, "camera_neighbours_k": 0})(T, w["street"], scene, StreetCapture(scene), NullObserver())
+    near = Nearest()(T, w["street"], scene, StreetCapture(scene), NullObserver())
     assert np.array_equal(own.points, both.points)          # the points' blend is untouched
     assert np.allclose(own.R, near.R, atol=1e-12) and np.allclose(own.t, near.t, atol=1e-9)
     assert np.abs(both.t - near.t).max() > 1e-3               # the cameras did blend with K = 3
-    same = InverseLog.from_config({"neighbours_k": 3, "camera_neighbours_k": 3})(T, w["street"], scene, NullObserver())
+    same = InverseLog.from_config({"neighbours_k": 3, "camera_neighbours_k": 3})(T, w["street"], scene, StreetCapture(scene), NullObserver())
     assert np.array_equal(same.t, both.t) and np.array_equal(same.R, both.R)
 
 
 def test_no_valid_segment_is_a_one_line_stage_error(scene_with_cameras):
     w, scene, _ = scene_with_cameras
     with pytest.raises(StageError, match="no valid segment"):
-        InverseLog()(_transforms(w["T_true"], np.zeros(4, bool)), w["street"], scene, NullObserver())
+        InverseLog()(_transforms(w["T_true"], np.zeros(4, bool)), w["street"], scene, StreetCapture(scene), NullObserver())
 
 
 # --- blending matters at segment borders under a smooth drift ---------------------------------------
@@ -208,15 +209,15 @@ def test_blending_beats_nearest_at_segment_borders(tmp_path):
         street, scene, T, truth, border = _drifting_street(tmp_path / str(seed), seed=seed)
         Tn = _with_refine_noise(T, street, truth, 0.3, seed)
         for stage in (InverseLog.from_config(SPARSE_STREET), Nearest()):
-            reg = stage(_transforms(Tn), street, scene, NullObserver())
+            reg = stage(_transforms(Tn), street, scene, StreetCapture(scene), NullObserver())
             p95[stage.name].append(np.percentile(np.linalg.norm(reg.points - truth, axis=1)[border], 95))
     assert np.mean(p95["inverse_log"]) < 0.8 * np.mean(p95["nearest"]), p95
 
 
 def test_with_exact_segment_transforms_blending_only_adds_the_drift_curvature(tmp_path):
     street, scene, T, truth, _ = _drifting_street(tmp_path)
-    near = Nearest()(_transforms(T), street, scene, NullObserver())
-    blend = InverseLog.from_config(SPARSE_STREET)(_transforms(T), street, scene, NullObserver())
+    near = Nearest()(_transforms(T), street, scene, StreetCapture(scene), NullObserver())
+    blend = InverseLog.from_config(SPARSE_STREET)(_transforms(T), street, scene, StreetCapture(scene), NullObserver())
     assert np.percentile(np.linalg.norm(near.points - truth, axis=1), 95) < 0.05
     assert np.percentile(np.linalg.norm(blend.points - truth, axis=1), 95) < 0.5
 
@@ -247,7 +248,8 @@ def test_a_camera_follows_the_segment_it_observes_not_the_nearest_one(tmp_path):
     write_model(model, root / "street/sparse")
     write_manifest(root, "loop", "EPSG:32617", {"street": {"cloud": "street/cloud.ply", "sparse": "street/sparse"}})
     for stage in (InverseLog(), Nearest()):
-        reg = stage(_transforms(T), street, load_scene(root), NullObserver())
+        scene = load_scene(root)
+        reg = stage(_transforms(T), street, scene, StreetCapture(scene), NullObserver())
         centre = -reg.R[0].T @ reg.t[0]
         assert np.allclose(centre, C[0] + [0.0, 12.0, 0.0], atol=1e-6), stage.key()
         assert np.abs(reg.points[:400] - a).max() < 1e-6      # the passes are not blended together
@@ -255,9 +257,9 @@ def test_a_camera_follows_the_segment_it_observes_not_the_nearest_one(tmp_path):
 
 def test_neighbours_beyond_the_gap_limit_are_not_blended(tmp_path):
     street, scene, T, truth, _ = _drifting_street(tmp_path)
-    far = InverseLog.from_config({"neighbours_k": 16})(_transforms(T), street, scene, NullObserver())
+    far = InverseLog.from_config({"neighbours_k": 16})(_transforms(T), street, scene, StreetCapture(scene), NullObserver())
     near = InverseLog.from_config({"neighbours_k": 16, "max_neighbour_gap_m": 15.0})(
-        _transforms(T), street, scene, NullObserver())
+        _transforms(T), street, scene, StreetCapture(scene), NullObserver())
     err = {k: np.percentile(np.linalg.norm(r.points - truth, axis=1), 95) for k, r in (("all", far), ("15m", near))}
     assert err["15m"] < err["all"], err
 

@@ -7,6 +7,7 @@ import pytest
 
 from plugins.warp_inverse_log import InverseLog
 from plugins.warp_nearest import Nearest
+from toolkit.capture import StreetCapture
 from toolkit.io.cloud import write_ply
 from toolkit.io.colmap import write_model
 from toolkit.observe import NullObserver
@@ -93,9 +94,9 @@ def _loop_scene(tmp_path):
 @pytest.mark.parametrize("stage", [Nearest, InverseLog], ids=["nearest", "inverse_log"])
 def test_points_of_the_other_pass_follow_a_segment_of_their_own_pass(tmp_path, stage):
     street, scene, tr, truth = _loop_scene(tmp_path)
-    on = stage.from_config({"neighbours_k": 1} if stage is InverseLog else {})(tr, street, scene, NullObserver())
+    on = stage.from_config({"neighbours_k": 1} if stage is InverseLog else {})(tr, street, scene, StreetCapture(scene), NullObserver())
     off = stage.from_config({"pass_gap_m": None, **({"neighbours_k": 1} if stage is InverseLog else {})})(
-        tr, street, scene, NullObserver())
+        tr, street, scene, StreetCapture(scene), NullObserver())
     err_on = np.linalg.norm(on.points - truth, axis=1)
     err_off = np.linalg.norm(off.points - truth, axis=1)
     assert np.median(err_off[600:900]) > 10.0                 # without the check: 12 m off
@@ -110,8 +111,8 @@ def test_cameras_of_the_other_pass_follow_a_segment_of_their_own_pass(tmp_path, 
     take its transform: it is anchored on a segment of its own pass (here 1, 12 m away)."""
     street, scene, tr, _ = _loop_scene(tmp_path)
     extra = {"neighbours_k": 1, "camera_neighbours_k": 1} if stage is InverseLog else {}
-    on = stage.from_config(extra)(tr, street, scene, NullObserver())
-    off = stage.from_config({"pass_gap_m": None, **extra})(tr, street, scene, NullObserver())
+    on = stage.from_config(extra)(tr, street, scene, StreetCapture(scene), NullObserver())
+    off = stage.from_config({"pass_gap_m": None, **extra})(tr, street, scene, StreetCapture(scene), NullObserver())
     truth = np.vstack([np.column_stack([np.arange(20.0), np.full(20, 4.0), np.full(20, 1.5)]),
                        np.column_stack([np.arange(20.0), np.full(20, 16.0), np.full(20, 1.5)])])
     last = np.r_[0:20, 21:41]  # every camera but the one 1 km away
@@ -154,7 +155,7 @@ def test_points_without_a_sparse_point_near_them_take_their_carriers_pass(tmp_pa
     T = np.repeat(np.eye(4)[None], 3, axis=0)
     T[1:, :3, 3] = [0.0, 12.0, 0.0]
     tr = SegmentTransforms(T=T, valid=np.array([True, True, False]), cost=np.zeros(3), confidence=np.ones(3))
-    reg = Nearest()(tr, street, load_scene(root), NullObserver())
+    reg = Nearest()(tr, street, load_scene(root), StreetCapture(load_scene(root)), NullObserver())
     assert (reg.point_segment[900:] == 1).all()                    # the unregistered segment's ground
     assert np.allclose(reg.points[900:], pts[900:] + [0.0, 12.0, 0.0])
     assert (reg.point_segment[:300] == 0).all()

@@ -53,7 +53,7 @@ def run_one(recipe_path: str, scene_dir: str, out_dir: str, overrides: list[str]
         if res.assessment is not None:
             row.update(status=res.assessment.status, confidence=res.assessment.confidence,
                        reason=res.assessment.main_reason if not res.assessment.reliable else "")
-        metrics = res.results.get("metrics")
+        metrics = res.results.metrics
         figures = RunMetrics.of(metrics).key_figures()
         for col, name in COLUMNS:
             row[col] = getattr(figures, name)

@@ -55,7 +55,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
           f"{len(plan.stages)} steps: {', '.join(s.use for s, _ in plan.stages)}")
     stages = [stage for _, stage in plan.stages]
     if uses_gps(plan.scene, stages):
-        found = gps_match(plan.scene)
+        found = gps_match(plan.capture)
         print(f"gps: {found.matched} of {found.fixes} fixes match images")
     return 0
 

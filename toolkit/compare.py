@@ -208,7 +208,7 @@ def run_variants(variants: Sequence[Variant], scenes: Sequence[Path | None], out
                     res = run_recipe(v.recipe, scene=scene, out=out / "runs" / scene_name / v.name,
                                      overrides=list(v.overrides), observer=obs, overwrite=True, rerun=False,
                                      registry=registry)
-                    metrics = res.results.get("metrics")
+                    metrics = res.results.metrics
                     row.metrics = RunMetrics.of(metrics)
                     row.timings = dict(res.timings)
                     row.out_dir = res.out_dir

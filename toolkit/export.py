@@ -12,11 +12,11 @@ from __future__ import annotations
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Callable
 
 import numpy as np
 
-from toolkit.io.attributes import CHUNK_POINTS, CloudChunk, CloudSource, memory_cloud, open_cloud
+from toolkit.io.attributes import CHUNK_POINTS, CloudChunk, CloudSource, memory_cloud
 from toolkit.io.cloud_out import LasGrid, LasWriter, PlyWriter, ply_fields, segment_name
 from toolkit.refine.transforms import rotation_part
 
@@ -125,31 +125,31 @@ def _carrier_rotation(vectors: np.ndarray, segment: np.ndarray, transforms) -> n
     return np.einsum("nab,nb->na", R[np.where(segment >= 0, segment, len(R) - 1)], vectors)
 
 
-def street_source(scene, registration) -> CloudSource:
-    """The scene's street cloud with every attribute; bare points when the registration does not
+def street_source(capture, registration) -> CloudSource:
+    """The capture's street cloud with every attribute; bare points when the registration does not
     hold one row per input point (a stage that drops points)."""
-    if not scene.has("street_cloud"):
+    if capture.cloud_path is None:
         return memory_cloud(Path("registration"), registration.points)
-    path = scene.files.street_cloud
-    source = open_cloud(path)
+    source = capture.attributes()
     if source.count != len(registration.points):
-        return memory_cloud(path, registration.points)
+        return memory_cloud(capture.cloud_path, registration.points)
     return source
 
 
-def write_registered(out: Path, plan, results: dict[str, Any], warnings: list[str]) -> None:
-    """registered.laz (always), registered.ply (unless ``outputs: {ply: false}``) and warp.npz."""
+def write_registered(out: Path, plan, outputs, warnings: list[str]) -> None:
+    """registered.laz (always), registered.ply (unless ``outputs: {ply: false}``) and warp.npz of a
+    run's ``RunOutputs``."""
     from toolkit.warp.store import FILE_NAME, StoredWarp, save_warp
 
-    registration = results["registration"]
+    registration = outputs.registration
     scene = plan.scene
     points = np.asarray(registration.points, np.float64)
     grid = LasGrid.around(points.min(axis=0), points.max(axis=0)) if len(points) else LasGrid(np.zeros(3), 0.001)
     if grid.scale_m != 0.001:
         warnings.append(f"registered.laz: the cloud spans more than 1 mm LAS integers hold; written at "
                         f"{grid.scale_m} m steps (registered.ply keeps float64)")
-    source = street_source(scene, registration)
-    mover = registration_mover(registration, results.get("transforms"), source.normals)
+    source = street_source(outputs.capture, registration)
+    mover = registration_mover(registration, outputs.transforms, source.normals)
     export_cloud(source, mover, scene.crs, grid, laz=out / "registered.laz",
                  ply=out / "registered.ply" if plan.recipe.outputs.get("ply", True) else None)
     if registration.warp is not None and registration.warp.source is not None:

@@ -12,7 +12,7 @@ import numpy as np
 
 from toolkit.metrics_model import RunMetrics
 from toolkit.refine.transforms import scale_of
-from toolkit.scene import load_points
+from toolkit.types import RunOutputs
 
 
 def _jsonable(value: Any) -> Any:
@@ -36,10 +36,10 @@ def dump_json(path: Path, value: Any) -> None:
     path.write_text(json.dumps(_jsonable(value), indent=2, sort_keys=False) + "\n")
 
 
-def transforms_table(results: dict[str, Any]) -> list[dict[str, Any]]:
+def transforms_table(outputs: RunOutputs) -> list[dict[str, Any]]:
     """One row per street segment: match, 4×4 transform, cost, confidence, validity."""
-    street, overview = results.get("street"), results.get("overview")
-    matches, transforms = results.get("matches"), results.get("transforms")
+    street, overview = outputs.street, outputs.overview
+    matches, transforms = outputs.matches, outputs.transforms
     if street is None or (matches is None and transforms is None):
         return []
     rows = []
@@ -62,9 +62,9 @@ def transforms_table(results: dict[str, Any]) -> list[dict[str, Any]]:
 PARTIAL_SHARE = 0.7  # below this share of registered street segments a run is called partial
 
 
-def coverage(results: dict[str, Any]) -> dict[str, Any] | None:
+def coverage(outputs: RunOutputs) -> dict[str, Any] | None:
     """How much of the street cloud was registered by its own segment's transform (no truth needed)."""
-    street, matches, transforms = results.get("street"), results.get("matches"), results.get("transforms")
+    street, matches, transforms = outputs.street, outputs.matches, outputs.transforms
     if street is None or (matches is None and transforms is None):
         return None
     n = len(street)
@@ -80,31 +80,30 @@ def coverage(results: dict[str, Any]) -> dict[str, Any] | None:
     }
 
 
-def write_outputs(out: Path, plan, results: dict[str, Any], timings: dict[str, float],
+def write_outputs(out: Path, plan, outputs: RunOutputs, timings: dict[str, float],
                   warnings: list[str], assessment=None, notes: list[str] = ()) -> None:
     """``assessment``: the run's ``toolkit.status.Assessment`` (assessed here when None); ``notes``:
     what the readers noted (e.g. a raster resampled onto the scene grid)."""
     from toolkit.status import assess
 
     if assessment is None:
-        assessment = assess(results, plan.scene)
+        assessment = assess(outputs)
 
-    cov = coverage(results)
+    cov = coverage(outputs)
     if cov is not None and cov["n_street_segments"] and cov["registered_share"] < PARTIAL_SHARE:
         warnings.append(
             f"partial registration: only {cov['n_registered']} of {cov['n_street_segments']} street segments "
             f"({100 * cov['points_on_registered_segments_share']:.0f} % of the points) were registered by their "
             "own transform; the other points are carried by the blended transforms of registered neighbours")
 
-    registration = results.get("registration")
-    if registration is not None:
+    if outputs.registration is not None:
         from toolkit.export import write_registered
 
-        write_registered(out, plan, results, warnings)
-    rows = transforms_table(results)
+        write_registered(out, plan, outputs, warnings)
+    rows = transforms_table(outputs)
     if rows:
         dump_json(out / "transforms.json", {"crs": plan.scene.crs, "segments": rows})
-    cameras = results.get("cameras")
+    cameras = outputs.cameras
     if cameras is not None:
         from toolkit.io.colmap import write_model
 
@@ -113,7 +112,7 @@ def write_outputs(out: Path, plan, results: dict[str, Any], timings: dict[str, f
         from toolkit.export import crs_wkt
 
         (out / "sparse" / "crs.wkt").write_text(crs_wkt(plan.scene.crs) + "\n")  # COLMAP has no CRS field
-    metrics = results.get("metrics")
+    metrics = outputs.metrics
     # the self-assessment first: it is what a user without truth reads
     metrics_values: dict[str, Any] = assessment.to_json()
     metrics_values.update(metrics.values if metrics is not None else {})
@@ -121,9 +120,9 @@ def write_outputs(out: Path, plan, results: dict[str, Any], timings: dict[str, f
         metrics_values["coverage"] = cov
     metrics_values["crs"] = plan.scene.crs
     metrics_values["street_scale"] = plan.scene.street_scale.as_dict()
-    metrics_values["heights"] = height_kind(plan.scene, results.get("overview"))
-    if results.get("transforms") is not None:
-        metrics_values["segment_scale"] = segment_scales(results["transforms"])
+    metrics_values["heights"] = height_kind(plan.scene, outputs.overview)
+    if outputs.transforms is not None:
+        metrics_values["segment_scale"] = segment_scales(outputs.transforms)
     metrics_values["warnings"] = list(warnings)
     metrics_values["input_notes"] = list(notes)  # "notes" is the evaluation's
     # written from the model (toolkit.metrics_model): an entry of another type than it declares fails here
@@ -132,7 +131,7 @@ def write_outputs(out: Path, plan, results: dict[str, Any], timings: dict[str, f
     dump_json(out / "timings.json", {k: round(v, 3) for k, v in timings.items()})
     (out / "recipe.yaml").write_text(plan.recipe.to_yaml())
     _write_log(out / "run.log", plan, timings, warnings, assessment, notes)
-    _write_report(out, plan, results, timings, warnings, assessment)
+    _write_report(out, plan, outputs, timings, warnings, assessment)
 
 
 def _write_log(path: Path, plan, timings: dict[str, float], warnings: list[str], assessment,
@@ -148,21 +147,20 @@ def _write_log(path: Path, plan, timings: dict[str, float], warnings: list[str],
     path.write_text("\n".join(lines) + "\n")
 
 
-def _write_report(out: Path, plan, results, timings, warnings, assessment) -> None:
+def _write_report(out: Path, plan, outputs: RunOutputs, timings, warnings, assessment) -> None:
     import importlib.util
 
     if importlib.util.find_spec("toolkit.report") is None:
         return
     from toolkit.report import ReportContext, write_report
 
-    street_points = None
-    if plan.scene.has("street_cloud"):
-        street_points = load_points(plan.scene, "street_cloud")
+    capture = outputs.capture
+    street_points = capture.points if capture is not None and capture.cloud_path is not None else None
     write_report(out, ReportContext(
-        recipe_text=plan.recipe.to_yaml(), scene=plan.scene, overview=results.get("overview"),
-        street=results.get("street"), matches=results.get("matches"),
-        transforms=results.get("transforms"), registration=results.get("registration"),
-        metrics=results.get("metrics"), timings=timings, warnings=warnings,
+        recipe_text=plan.recipe.to_yaml(), scene=plan.scene, overview=outputs.overview,
+        street=outputs.street, matches=outputs.matches,
+        transforms=outputs.transforms, registration=outputs.registration,
+        metrics=outputs.metrics, timings=timings, warnings=warnings,
         street_points=street_points, assessment=assessment,
     ))
 

@@ -26,6 +26,7 @@ from typing import Any, Iterable, Iterator, TypeVar
 from toolkit.recipe import StepSpec
 from toolkit.stage import KIND_INPUTS, KIND_OPTIONAL, KIND_OUTPUT, Stage
 from toolkit.threads import thread_budget, thread_cap
+from toolkit.types import RunOutputs
 
 T = TypeVar("T")
 
@@ -69,29 +70,29 @@ class Prefetcher:
         self.steps, self.pool = steps, pool
         self.started: dict[str, Future] = {}
 
-    def _due(self, results: dict[str, Any], after: int) -> list[tuple[StepSpec, Stage]]:
+    def _due(self, outputs: RunOutputs, after: int) -> list[tuple[StepSpec, Stage]]:
         due = []
         for i, (spec, stage) in enumerate(self.steps[after + 1:], after + 1):
             remade = {n for _, earlier in self.steps[after + 1:i] for n in earlier.remakes()}
             if spec.name not in self.started and type(stage).prefetch is not Stage.prefetch \
-                    and all(n in results and n not in remade for n in stage.prefetch_inputs()):
+                    and all(outputs.has(n) and n not in remade for n in stage.prefetch_inputs()):
                 due.append((spec, stage))
         return due
 
-    def start_beside(self, results: dict[str, Any], after: int) -> None:
+    def start_beside(self, outputs: RunOutputs, after: int) -> None:
         """Prefetches the outputs up to step ``after`` allow, in the pool, beside step ``after + 1``."""
         if after + 1 >= len(self.steps) or self.steps[after + 1][1].holds_gil():
             return
-        for spec, stage in self._due(results, after):
+        for spec, stage in self._due(outputs, after):
             if spec.name != self.steps[after + 1][0].name:  # the step itself simply runs
-                self.started[spec.name] = self.pool.submit(run_prefetch, stage, results)
+                self.started[spec.name] = self.pool.submit(run_prefetch, stage, outputs)
 
-    def run_here(self, results: dict[str, Any], after: int) -> None:
+    def run_here(self, outputs: RunOutputs, after: int) -> None:
         """Prefetches the outputs up to step ``after`` allow, in this (background) thread."""
-        for spec, stage in self._due(results, after):
+        for spec, stage in self._due(outputs, after):
             job: Future = Future()
             try:
-                job.set_result(run_prefetch(stage, results))
+                job.set_result(run_prefetch(stage, outputs))
             except BaseException as exc:  # raised when the step runs: it is that step's error
                 job.set_exception(exc)
             self.started[spec.name] = job
@@ -100,10 +101,10 @@ class Prefetcher:
         return self.started.pop(name, None)
 
 
-def run_prefetch(stage: Stage, results: dict[str, Any]) -> Any:
+def run_prefetch(stage: Stage, outputs: RunOutputs) -> Any:
     """``stage.prefetch`` on its inputs, beside a step that keeps a core busy: with the threads left."""
     with thread_cap(thread_budget() - 1):
-        return stage.prefetch(**{n: results[n] for n in stage.prefetch_inputs()})
+        return stage.prefetch(**{n: getattr(outputs, n) for n in stage.prefetch_inputs()})
 
 
 def independent(first: StepSpec, second: StepSpec, recipe_kinds: set[str]) -> bool:

@@ -7,13 +7,14 @@ import os
 import shutil
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Iterable
 
 from pydantic import ValidationError
 from threadpoolctl import threadpool_limits
 
+from toolkit.capture import StreetCapture
 from toolkit.errors import CrossviewError, RecipeError, SceneError
 from toolkit.observe import NullObserver, Observer
 from toolkit.overlap import BufferedObserver, Prefetcher, independent
@@ -21,25 +22,26 @@ from toolkit.recipe import Recipe, StepSpec, load_recipe
 from toolkit.registry import Registry, default_registry
 from toolkit.scene import FIELD_TO_MANIFEST, load_scene
 from toolkit.street_scale import check_assumed_scale, resolve_street_scale
-from toolkit.stage import KIND_INPUTS, KIND_OPTIONAL, KIND_OUTPUT, KIND_OUTPUT_TYPE, Stage
+from toolkit.stage import KIND_INPUTS, KIND_OPTIONAL, KIND_OUTPUT, KIND_OUTPUT_TYPE, RUN_INPUTS, Stage
 from toolkit.status import Assessment, assess
 from toolkit.threads import thread_budget
-from toolkit.types import Scene
+from toolkit.types import RunOutputs, Scene
 
 
 @dataclass(frozen=True)
 class Plan:
-    """A validated recipe: its scene and instantiated stages, ready to execute."""
+    """A validated recipe: its scene, the scene's street capture and instantiated stages, ready to execute."""
 
     recipe: Recipe
     scene: Scene
     stages: tuple[tuple[StepSpec, Stage], ...]
+    capture: StreetCapture
 
 
 @dataclass
 class RunResult:
     out_dir: Path | None
-    results: dict[str, Any]
+    results: RunOutputs
     timings: dict[str, float]
     warnings: list[str] = field(default_factory=list)
     assessment: Assessment | None = None  # the truth-free self-assessment (toolkit.status)
@@ -72,7 +74,7 @@ def build(recipe: Recipe, scene: str | Path | None = None, registry: Registry | 
     """Validate stage names, params, step dependencies and scene files before any computation."""
     registry = registry or default_registry()
     stages: list[tuple[StepSpec, Stage]] = []
-    available = {"scene"}
+    available = set(RUN_INPUTS)
     for spec in recipe.steps:
         label = _step_label(spec)
         try:
@@ -90,6 +92,7 @@ def build(recipe: Recipe, scene: str | Path | None = None, registry: Registry | 
         available.add(KIND_OUTPUT[spec.name])
         stages.append((spec, stage))
     scene_obj = resolve_street_scale(load_scene(resolve_scene_path(recipe, scene)), recipe.street_scale, recipe.path)
+    capture = StreetCapture(scene_obj)  # the run's one capture, in metres now that the scale is known
     needed: list[str] = []
     for spec, stage in stages:
         for need in type(stage).scene_needs(stage.params):
@@ -101,17 +104,16 @@ def build(recipe: Recipe, scene: str | Path | None = None, registry: Registry | 
             needed += options
     from toolkit.validate import check_scene_files
 
-    check_scene_files(scene_obj, needed, [stage for _, stage in stages])
-    return Plan(recipe=recipe, scene=scene_obj, stages=tuple(stages))
+    check_scene_files(scene_obj, needed, [stage for _, stage in stages], capture)
+    return Plan(recipe=recipe, scene=scene_obj, stages=tuple(stages), capture=capture)
 
 
-def _run_step(spec: StepSpec, stage: Stage, results: dict[str, Any], obs: Any,
+def _run_step(spec: StepSpec, stage: Stage, outputs: RunOutputs, obs: Any,
               prefetched: Future | None = None) -> tuple[Any, float]:
-    """One step on its inputs from ``results``: (output, seconds); errors name the step.
+    """One step on its inputs from ``outputs``: (output, seconds); errors name the step.
     ``prefetched``: the stage's ``prefetch``, started beside the step before (an error in it is
     this step's error)."""
-    kwargs = {n: results[n] for n in KIND_INPUTS[spec.name]}
-    kwargs.update({n: results.get(n) for n in KIND_OPTIONAL.get(spec.name, ())})
+    kwargs = {n: getattr(outputs, n) for n in KIND_INPUTS[spec.name] + KIND_OPTIONAL.get(spec.name, ())}
     obs.stage_start(spec.name, spec.use)
     t0 = time.perf_counter()
     try:
@@ -130,8 +132,9 @@ def _run_step(spec: StepSpec, stage: Stage, results: dict[str, Any], obs: Any,
 
 
 def execute(plan: Plan, obs: Observer | None = None,
-            overlap: bool | None = None) -> tuple[dict[str, Any], dict[str, float]]:
-    """Run the stages in recipe order; returns outputs by name (``KIND_OUTPUT``) and seconds per step.
+            overlap: bool | None = None) -> tuple[RunOutputs, dict[str, float]]:
+    """Run the stages in recipe order; returns what they made (with the scene and its capture) and
+    seconds per step.
 
     ``overlap`` (default: when the thread budget has two threads, ``toolkit.threads``): a step and
     the next one run side by side when the next needs nothing from it, and a stage's ``prefetch``
@@ -140,7 +143,7 @@ def execute(plan: Plan, obs: Observer | None = None,
     """
     obs = obs or NullObserver()
     overlap = thread_budget() >= 2 if overlap is None else overlap
-    results: dict[str, Any] = {"scene": plan.scene}
+    outputs = RunOutputs(scene=plan.scene, capture=plan.capture)
     timings: dict[str, float] = {}
     kinds = {spec.name for spec, _ in plan.stages}
     steps = list(plan.stages)
@@ -151,37 +154,37 @@ def execute(plan: Plan, obs: Observer | None = None,
         early = Prefetcher(steps, pool)
 
         def behind(k: int, buffered: BufferedObserver) -> tuple[Any, float]:
-            done = _run_step(*steps[k], results, buffered)
-            early.run_here({**results, KIND_OUTPUT[steps[k][0].name]: done[0]}, k + 1)
+            done = _run_step(*steps[k], outputs, buffered)
+            early.run_here(replace(outputs, **{KIND_OUTPUT[steps[k][0].name]: done[0]}), k + 1)
             return done
 
         i = 0
         while i < len(steps):
             spec, stage = steps[i]
             if overlap:
-                early.start_beside(results, i - 1)
+                early.start_beside(outputs, i - 1)
             if overlap and i + 1 < len(steps) and independent(spec, steps[i + 1][0], kinds):
                 buffered = BufferedObserver(obs.wants_debug)
                 background = pool.submit(behind, i, buffered)
                 try:
-                    ahead = _run_step(*steps[i + 1], results, obs, early.take(steps[i + 1][0].name))
+                    ahead = _run_step(*steps[i + 1], outputs, obs, early.take(steps[i + 1][0].name))
                 finally:
                     done = background.result()  # waits; the earlier step's error wins, as in recipe order
                 buffered.replay(obs)
                 pairs = [(spec, done), (steps[i + 1][0], ahead)]
                 i += 2
             else:
-                pairs = [(spec, _run_step(spec, stage, results, obs, early.take(spec.name)))]
+                pairs = [(spec, _run_step(spec, stage, outputs, obs, early.take(spec.name)))]
                 i += 1
             for s, (out, seconds) in pairs:
-                results[KIND_OUTPUT[s.name]] = out
+                outputs = replace(outputs, **{KIND_OUTPUT[s.name]: out})
                 timings[s.name] = seconds
                 if s.name == "street":
-                    check_assumed_scale(out, plan.scene)
+                    check_assumed_scale(out, plan.capture)
                 for name in stage_of[s.name].remakes():  # e.g. the adjust step's re-made registration
                     if getattr(out, name, None) is not None:
-                        results[name] = getattr(out, name)
-    return results, timings
+                        outputs = replace(outputs, **{name: getattr(out, name)})
+    return outputs, timings
 
 
 class _LogCollector(logging.Handler):
@@ -252,17 +255,17 @@ def run_recipe(recipe_path: str | Path, scene: str | Path | None = None, out: st
             rerun_obs.log_text("recipe", f"```yaml\n{recipe.to_yaml()}\n```")
             obs = MultiObserver(obs, rerun_obs)
         with collected_log() as logged:
-            results, timings = execute(plan, obs, overlap)
+            outputs, timings = execute(plan, obs, overlap)
         if rerun_obs is not None:
             rerun_obs.close()
             rerun_obs = None
         warnings = list(getattr(obs, "warnings", [])) + logged.warnings
-        assessment = assess(results, plan.scene)
-        write_outputs(tmp, plan, results, timings, warnings, assessment, notes=logged.notes)
+        assessment = assess(outputs)
+        write_outputs(tmp, plan, outputs, timings, warnings, assessment, notes=logged.notes)
         if out_dir.exists():
             shutil.rmtree(out_dir)
         tmp.rename(out_dir)
-        return RunResult(out_dir=out_dir, results=results, timings=timings, warnings=warnings,
+        return RunResult(out_dir=out_dir, results=outputs, timings=timings, warnings=warnings,
                          assessment=assessment, scene=plan.scene)
     except BaseException:
         if rerun_obs is not None:

@@ -179,6 +179,26 @@ def load_points(scene: Scene, key: str = "street_cloud", who: str = "") -> np.nd
     return _points(p, _mtime(p))
 
 
+def load_cloud(scene: Scene, key: str, who: str = "") -> np.ndarray:
+    """(N,3) float64, read-only, of the over-view cloud or the truth lidar. The street cloud is not
+    read here: it comes with the run's ``toolkit.capture.StreetCapture``, in metres."""
+    if key == "street_cloud":
+        raise ValueError("the street cloud is read through toolkit.capture.StreetCapture")
+    return load_points(scene, key, who)
+
+
+def overview_heights(scene: Scene, who: str = "") -> Raster | np.ndarray | None:
+    """Where the over-view heights come from: the DSM, else the terrain model (rasters on the scene
+    grid), else the over-view cloud ((N,3), read-only); None when the scene has none of them."""
+    if scene.has("dsm"):
+        return load_raster(scene, "dsm", who)
+    if scene.has("dem"):
+        return load_dem(scene, who)
+    if scene.has("overview_cloud"):
+        return load_cloud(scene, "overview_cloud", who)
+    return None
+
+
 @replaying_cache(maxsize=1)
 def _scaled_points(path: Path, mtime: float, scale: float) -> np.ndarray:
     pts = _points(path, mtime) / scale

@@ -339,11 +339,12 @@ def make_folders(folder: Path) -> list[Path]:
 def check_files(scene: Scene) -> Any:
     """``validate``'s checks of every file the scene names (the stages' own checks need a recipe:
     ``crossview validate``); the GPS match when the scene has fixes and a model."""
+    from toolkit.capture import StreetCapture
     from toolkit.validate import check_gps, check_scene_files
 
     keys = [f.name for f in dataclasses.fields(SceneFiles) if scene.has(f.name)]
     check_scene_files(scene, keys)
-    return check_gps(scene) if scene.has("gps") and scene.has("sparse") else None
+    return check_gps(StreetCapture(scene)) if scene.has("gps") and scene.has("sparse") else None
 
 
 # --- the command --------------------------------------------------------------------------------

@@ -7,7 +7,7 @@ takes only its Params: no I/O. ``from_config`` builds it from a plain mapping (d
 
 from __future__ import annotations
 
-from typing import Any, ClassVar, Mapping, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, ClassVar, Mapping, Protocol, runtime_checkable
 
 from pydantic import BaseModel, ConfigDict
 
@@ -24,6 +24,9 @@ from toolkit.types import (
     StreetSegments,
 )
 
+if TYPE_CHECKING:
+    from toolkit.capture import StreetCapture
+
 # Kinds in pipeline order, the name of what each produces, and what each consumes.
 KINDS: tuple[str, ...] = (
     "overview", "street", "graph", "unary", "match", "refine", "warp", "adjust", "evaluate",
@@ -38,18 +41,21 @@ KIND_OUTPUT_TYPE: dict[str, type] = {
     "unary": DataCosts, "match": Matches, "refine": SegmentTransforms, "warp": Registration,
     "adjust": AdjustedCameras, "evaluate": Metrics,
 }
-# Required inputs (by output name, plus "scene"); OPTIONAL ones are passed as None when absent.
+# Required inputs (by output name, plus "scene" and "capture", the run's StreetCapture: the street
+# cloud and COLMAP model in metres, GPS); OPTIONAL ones are passed as None when absent. Names are
+# fields of ``toolkit.types.RunOutputs``.
 KIND_INPUTS: dict[str, tuple[str, ...]] = {
     "overview": ("scene",),
-    "street": ("scene",),
+    "street": ("scene", "capture"),
     "graph": ("street", "overview"),
-    "unary": ("graphs", "street", "overview", "scene"),
+    "unary": ("graphs", "street", "overview", "scene", "capture"),
     "match": ("graphs", "costs"),
-    "refine": ("matches", "street", "overview", "scene"),
-    "warp": ("transforms", "street", "scene"),
-    "adjust": ("registration", "scene"),
+    "refine": ("matches", "street", "overview", "scene", "capture"),
+    "warp": ("transforms", "street", "scene", "capture"),
+    "adjust": ("registration", "scene", "capture"),
     "evaluate": ("registration", "scene"),
 }
+RUN_INPUTS: tuple[str, ...] = ("scene", "capture")  # given by the runner, made by no step
 KIND_OPTIONAL: dict[str, tuple[str, ...]] = {
     "refine": ("graphs",),
     "evaluate": ("cameras", "matches", "street", "overview", "transforms"),
@@ -122,7 +128,7 @@ class OverviewStage(Protocol):
 
 @runtime_checkable
 class StreetStage(Protocol):
-    def __call__(self, scene: Scene, obs: Any) -> StreetSegments: ...
+    def __call__(self, scene: Scene, capture: StreetCapture, obs: Any) -> StreetSegments: ...
 
 
 @runtime_checkable
@@ -133,7 +139,7 @@ class GraphStage(Protocol):
 @runtime_checkable
 class UnaryStage(Protocol):
     def __call__(self, graphs: ConjugateGraphs, street: StreetSegments, overview: OverviewSegments,
-                 scene: Scene, obs: Any) -> DataCosts: ...
+                 scene: Scene, capture: StreetCapture, obs: Any) -> DataCosts: ...
 
 
 @runtime_checkable
@@ -143,19 +149,20 @@ class MatchStage(Protocol):
 
 @runtime_checkable
 class RefineStage(Protocol):
-    def __call__(self, matches: Matches, street: StreetSegments, overview: OverviewSegments,
-                 scene: Scene, obs: Any, graphs: ConjugateGraphs | None = None) -> SegmentTransforms: ...
+    def __call__(self, matches: Matches, street: StreetSegments, overview: OverviewSegments, scene: Scene,
+                 capture: StreetCapture, obs: Any, graphs: ConjugateGraphs | None = None) -> SegmentTransforms: ...
 
 
 @runtime_checkable
 class WarpStage(Protocol):
     def __call__(self, transforms: SegmentTransforms, street: StreetSegments, scene: Scene,
-                 obs: Any) -> Registration: ...
+                 capture: StreetCapture, obs: Any) -> Registration: ...
 
 
 @runtime_checkable
 class AdjustStage(Protocol):
-    def __call__(self, registration: Registration, scene: Scene, obs: Any) -> AdjustedCameras: ...
+    def __call__(self, registration: Registration, scene: Scene, capture: StreetCapture,
+                 obs: Any) -> AdjustedCameras: ...
 
 
 @runtime_checkable

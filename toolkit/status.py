@@ -1,6 +1,6 @@
 """Self-assessment of a run without truth: figures a user can compute, and a rule that judges them.
 
-``assess(results, scene)`` measures truth-free figures from the run's outputs (nothing under
+``assess(outputs)`` measures truth-free figures from the run's outputs (nothing under
 ``truth/`` is read, nor the truth fields of ``Metrics``) and judges them with a ``StatusRule``:
 status ``ok`` or ``unreliable``, a confidence in [0, 1] and one-line reasons, most important first.
 The figures are rounded (``FIGURE_DIGITS``) before they are judged and are written to metrics.json
@@ -16,6 +16,7 @@ from typing import Any, Iterator, Mapping
 
 import numpy as np
 
+from toolkit.capture import StreetCapture
 from toolkit.errors import CrossviewError
 from toolkit.refine.transforms import apply_each, scale_of
 from toolkit.types import (
@@ -25,7 +26,7 @@ from toolkit.types import (
     Matches,
     OverviewSegments,
     Registration,
-    Scene,
+    RunOutputs,
     SegmentTransforms,
     StreetSegments,
 )
@@ -279,37 +280,32 @@ class Assessment:
                 "assessment": dict(self.figures), "status_rule": self.rule.to_dict()}
 
 
-def assess(results: Mapping[str, Any], scene: Scene | None, rule: StatusRule | None = None,
-           params: AssessParams | None = None) -> Assessment:
-    """Measure the truth-free figures of a run's outputs (``KIND_OUTPUT`` names) and judge them."""
+def assess(outputs: RunOutputs, rule: StatusRule | None = None, params: AssessParams | None = None) -> Assessment:
+    """Measure the truth-free figures of a run's outputs and judge them."""
     rule, params = rule or StatusRule(), params or AssessParams()
-    figures = measure(results, scene, params)
+    figures = measure(outputs, params)
     status, confidence, reasons = rule.judge(figures)
     return Assessment(status, confidence, reasons, figures, rule)
 
 
-def measure(results: Mapping[str, Any], scene: Scene | None, params: AssessParams | None = None) -> dict[str, Any]:
+def measure(outputs: RunOutputs, params: AssessParams | None = None) -> dict[str, Any]:
     """Every figure, rounded to ``FIGURE_DIGITS`` (None where the outputs do not allow it)."""
     params = params or AssessParams()
-    street: StreetSegments | None = results.get("street")
-    overview: OverviewSegments | None = results.get("overview")
-    matches: Matches | None = results.get("matches")
-    transforms: SegmentTransforms | None = results.get("transforms")
-    registration: Registration | None = results.get("registration")
-    cameras: AdjustedCameras | None = results.get("cameras")
+    street, overview, matches = outputs.street, outputs.overview, outputs.matches
+    transforms, registration, cameras = outputs.transforms, outputs.registration, outputs.cameras
     figures: dict[str, Any] = {}
     figures.update(registered_share(street, transforms))
     figures["segment_scale_median"] = segment_scale_median(transforms)
     figures.update(matching_figures(matches))
-    figures.update(prior_figures(results.get("costs")))
-    figures.update(neighbour_agreement(results.get("graphs"), street, transforms, params.neighbour_tol_m))
+    figures.update(prior_figures(outputs.costs))
+    figures.update(neighbour_agreement(outputs.graphs, street, transforms, params.neighbour_tol_m))
     figures.update(facade_support(registration, street, overview, params.facade_radius_m, params.max_points,
                                   params.facade_cap_m))
     figures["outside_grid_share"] = outside_grid_share(registration, overview, params.max_points)
     figures.update(camera_spread(registration))
     figures["camera_height_median_m"] = camera_height_m(registration, street, params.max_points)
     figures.update(bundle_adjustment(cameras))
-    figures.update(gps_residuals(scene, registration, cameras))
+    figures.update(gps_residuals(outputs.capture, registration, cameras))
     return {k: _round(v) for k, v in figures.items()}
 
 
@@ -474,19 +470,18 @@ def bundle_adjustment(cameras: AdjustedCameras | None) -> dict[str, Any]:
             "ba_iterations": int(cameras.iterations)}
 
 
-def gps_residuals(scene: Scene | None, registration: Registration | None,
+def gps_residuals(capture: StreetCapture | None, registration: Registration | None,
                   cameras: AdjustedCameras | None) -> dict[str, Any]:
     """Horizontal distance of the output camera centres (adjusted, else registered) from street/gps.csv."""
     out: dict[str, Any] = {"gps_fixes": None, "gps_sigma_m": None, "gps_residual_median_m": None,
                            "gps_residual_p90_m": None}
     names, centres = _output_cameras(registration, cameras)
-    if scene is None or not scene.has("gps") or not len(names):
+    if capture is None or capture.gps_path is None or not len(names):
         return out
-    from toolkit.matching.gps import read_gps_csv
-
     try:
-        fix_names, lonlat, sigma = read_gps_csv(scene.files.gps)
-        fixes = _project_lonlat(lonlat, scene.crs)
+        gps = capture.gps
+        fix_names, lonlat, sigma = list(gps.names), gps.lonlat, gps.sigma_m
+        fixes = _project_lonlat(lonlat, capture.scene.crs)
     except CrossviewError:
         return out  # a figure, not a step: an unreadable optional file must not fail the run
     index = {n: k for k, n in enumerate(names)}

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from toolkit.capture import StreetCapture
 from toolkit.errors import SceneError
 from toolkit.types import Scene, StreetScale
 
@@ -94,16 +95,14 @@ def scale_from_gps(scene: Scene) -> StreetScale | None:
     return StreetScale(value, "gps", len(r), estimate=value)
 
 
-def camera_height(street, scene: Scene) -> float | None:
+def camera_height(street, capture: StreetCapture) -> float | None:
     """Median height of the cameras above the ground of the street segment nearest to each (levelled
     street frame, in the frame's units as loaded); None without cameras or ground heights."""
     from scipy.spatial import cKDTree
 
-    from toolkit.scene import load_sparse
-
     ground = np.asarray(street.ground_z, np.float64)
     known = np.isfinite(ground)
-    centres = load_sparse(scene).centres
+    centres = capture.require_sparse("the street scale check").centres
     if not known.any() or len(centres) == 0:
         return None
     cams = street.level(centres)
@@ -111,14 +110,14 @@ def camera_height(street, scene: Scene) -> float | None:
     return float(np.median(cams[:, 2] - ground[known][nn]))
 
 
-def check_assumed_scale(street, scene: Scene, lo_m: float = 0.8, hi_m: float = 6.0) -> None:
+def check_assumed_scale(street, capture: StreetCapture, lo_m: float = 0.8, hi_m: float = 6.0) -> None:
     """With the scale assumed (no GPS, none given): a SceneError when the cameras sit implausibly
     high or low above the street ground (``camera_height``): the frame is then not metric, and
     matching it would fail slowly (campus at 10x: over 10 minutes in the data term)."""
-    if scene.street_scale.source != "assumed" or not scene.has("sparse") or street is None or len(street) == 0:
+    if capture.scale.source != "assumed" or capture.sparse_path is None or street is None or len(street) == 0:
         return
-    height = camera_height(street, scene)
+    height = camera_height(street, capture)
     if height is not None and not lo_m <= height <= hi_m:
-        raise SceneError(f"{scene.files.sparse}: the cameras sit {height:.2f} frame units above the street "
+        raise SceneError(f"{capture.sparse_path}: the cameras sit {height:.2f} frame units above the street "
                          f"ground ({lo_m:g}-{hi_m:g} m expected of a street capture): the street frame is not "
                          f"metric; set street_scale (frame units per metre) or give street/gps.csv")

@@ -36,7 +36,7 @@ SUMMARY_ROWS: tuple[tuple[str, str, str], ...] = (
 
 def print_summary(res, console: Console | None = None) -> None:
     console = console or Console()
-    metrics = res.results.get("metrics")
+    metrics = res.results.metrics
     figures = RunMetrics.of(metrics).key_figures()
     table = Table(title=f"crossview — {res.out_dir}", show_header=True, header_style="bold")
     table.add_column("measure")
@@ -51,7 +51,7 @@ def print_summary(res, console: Console | None = None) -> None:
         table.add_row("street scale (frame units per metre)", f"{scale.value:.4f} {how}")
     from toolkit.outputs import height_kind
 
-    if res.scene is not None and height_kind(res.scene, res.results.get("overview")) == "relative":
+    if res.scene is not None and height_kind(res.scene, res.results.overview) == "relative":
         table.add_row("heights", "relative: no DSM or terrain model, street ground at 0 m")
     for label, name, unit in SUMMARY_ROWS:
         v = getattr(figures, name)

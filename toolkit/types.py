@@ -12,11 +12,14 @@ Conventions
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from toolkit.capture import StreetCapture
 
 Array = np.ndarray
 
@@ -379,3 +382,29 @@ class Metrics:
 
     values: Mapping[str, Any]
     per_point_error_m: Array | None = None  # (N,) 3D error per street point when truth exists
+
+
+@dataclass(frozen=True)
+class RunOutputs:
+    """What a run has made so far: its inputs (``scene``, ``capture``) and one field per stage kind's
+    output, named as in ``toolkit.stage.KIND_OUTPUT`` (None: not made; the recipe has no such step
+    or it has not run yet). The runner passes a stage its inputs from here by name."""
+
+    scene: Scene | None = None
+    capture: StreetCapture | None = None
+    overview: OverviewSegments | None = None
+    street: StreetSegments | None = None
+    graphs: ConjugateGraphs | None = None
+    costs: DataCosts | None = None
+    matches: Matches | None = None
+    transforms: SegmentTransforms | None = None
+    registration: Registration | None = None
+    cameras: AdjustedCameras | None = None
+    metrics: Metrics | None = None
+
+    def has(self, name: str) -> bool:
+        return getattr(self, name) is not None
+
+    def made(self) -> tuple[str, ...]:
+        """The names of the fields that are set, in field order."""
+        return tuple(f.name for f in fields(self) if getattr(self, f.name) is not None)

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
+from toolkit.capture import StreetCapture
 from toolkit.errors import SceneError
 from toolkit.types import Scene
 
@@ -29,7 +30,9 @@ class GpsMatch:
     fixes: int
 
 
-def check_scene_files(scene: Scene, keys: Iterable[str], stages: Sequence[Any] = ()) -> None:
+def check_scene_files(scene: Scene, keys: Iterable[str], stages: Sequence[Any] = (),
+                      capture: StreetCapture | None = None) -> None:
+    """``capture``: the run's street capture (default: the scene's as it is)."""
     keys = [k for k in dict.fromkeys(keys) if scene.has(k)]
     for key in keys:
         path: Path = getattr(scene.files, key)
@@ -44,7 +47,7 @@ def check_scene_files(scene: Scene, keys: Iterable[str], stages: Sequence[Any] =
     if any(k in RASTERS or k in ("footprints", "osm") for k in keys):  # both are read onto the scene grid
         _rasters_meet_the_grid(scene, [k for k in keys if k in RASTERS])
     if uses_gps(scene, stages):
-        check_gps(scene)
+        check_gps(capture if capture is not None else StreetCapture(scene))
     for stage in stages:
         stage.check_scene(scene)
 
@@ -54,21 +57,20 @@ def uses_gps(scene: Scene, stages: Sequence[Any]) -> bool:
     return scene.has("gps") and scene.has("sparse") and any(s.kind == "unary" for s in stages)
 
 
-def gps_match(scene: Scene) -> GpsMatch:
-    from toolkit.io.gps import match_images, read_gps_csv
-    from toolkit.scene import load_sparse
+def gps_match(capture: StreetCapture) -> GpsMatch:
+    from toolkit.io.gps import match_images
 
-    fixes = read_gps_csv(scene.files.gps)
-    model = load_sparse(scene, who="street.gps")
+    fixes = capture.gps
+    model = capture.require_sparse("street.gps")
     return GpsMatch(int((match_images(fixes.names, model.image_names) >= 0).sum()), len(fixes))
 
 
-def check_gps(scene: Scene) -> GpsMatch:
+def check_gps(capture: StreetCapture) -> GpsMatch:
     """How many GPS fixes name a COLMAP image; a one-line error when none does."""
-    found = gps_match(scene)
+    found = gps_match(capture)
     if found.matched == 0:
-        raise SceneError(f"{scene.files.gps}: none of its {found.fixes} fixes names an image of the COLMAP "
-                         f"model {scene.files.sparse} (matched by image name, then by file name)")
+        raise SceneError(f"{capture.gps_path}: none of its {found.fixes} fixes names an image of the COLMAP "
+                         f"model {capture.sparse_path} (matched by image name, then by file name)")
     return found
 
 

@@ -16,7 +16,7 @@ import numpy as np
 
 from toolkit.errors import SceneError
 from toolkit.evaluation import metrics as M
-from toolkit.scene import load_array, load_points
+from toolkit.scene import load_array, load_cloud
 from toolkit.threads import thread_budget
 from toolkit.types import Registration, Scene
 
@@ -83,7 +83,7 @@ def find_reference(scene: Scene, reference: str, notes: list[str]) -> Reference:
 
 def read_reference(scene: Scene, ref: Reference) -> np.ndarray:
     if ref.source in REFERENCE_KEYS:
-        return load_points(scene, ref.source, who="evaluate.chamfer")
+        return load_cloud(scene, ref.source, who="evaluate.chamfer")
     from toolkit.io.cloud import read_points
 
     return read_points(ref.path)

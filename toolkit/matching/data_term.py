@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 from pydantic import Field
 
+from toolkit.capture import StreetCapture
 from toolkit.matching import anchors as AN
 from toolkit.matching import chamfer as CH
 from toolkit.matching.candidates import Candidates, PairGeometry
@@ -28,7 +29,7 @@ from toolkit.matching.mrf import wrap_angle
 from toolkit.matching.pose_search import Scored, StreetSamples
 from toolkit.matching.route_prior import RoutePlacement, RoutePriorConfig, capture_order, place_route
 from toolkit.observe import DebugPoints2D, DebugText
-from toolkit.types import DataCosts, OverviewSegments, Scene, StreetSegments
+from toolkit.types import DataCosts, OverviewSegments, SparseModel, StreetSegments
 
 
 class FreeSpaceConfig(MatchingConfig):
@@ -39,8 +40,8 @@ class FreeSpaceConfig(MatchingConfig):
     weight: float = Field(0.5, ge=0, le=1, description="weight of the free-space term in the pose cost (0: chamfer only)")
     probe_offset_m: float = Field(2.0, gt=0, description="distance of the free-space probes from the façade (m)")
 
-    def used_with(self, scene: Scene | None) -> bool:
-        return self.weight > 0 and scene is not None and scene.has("sparse")
+    def used_with(self, capture: StreetCapture | None) -> bool:
+        return self.weight > 0 and capture is not None and capture.sparse_path is not None
 
 
 def null_costs(n_edges: int, n_labels: int) -> DataCosts:
@@ -50,27 +51,25 @@ def null_costs(n_edges: int, n_labels: int) -> DataCosts:
     return DataCosts(cost, np.full((n_edges, n_labels - 1), np.nan), np.full((n_edges, n_labels - 1, 2), np.nan))
 
 
-def choose_prior(scene: Scene | None, street: StreetSegments, overview: OverviewSegments, gps: GpsConfig,
+def choose_prior(capture: StreetCapture | None, street: StreetSegments, overview: OverviewSegments, gps: GpsConfig,
                  route: RoutePriorConfig, obs) -> PruningPrior:
     """GPS fixes, else the route placed by its façades (``route.enabled``, street/sparse), else none."""
     prior, source, figures = None, None, None
-    if scene is not None and scene.has("gps"):
-        prior = gps_prior(scene, street, n_local=gps.fit_fixes, warn=obs.warn)
+    if capture is not None and capture.gps_path is not None:
+        prior = gps_prior(capture, street, n_local=gps.fit_fixes, warn=obs.warn)
         source = "gps" if prior is not None else None
-    if prior is None and route.enabled and scene is not None and scene.has("sparse"):
-        placed = place_route_by_facades(street, overview, scene, route, obs)
+    if prior is None and route.enabled and capture is not None and capture.sparse_path is not None:
+        placed = place_route_by_facades(street, overview, capture.sparse, route, obs)
         prior, figures = placed.prior, placed.figures()
         source = "route_placement" if prior is not None else None
     radius = prior_radii(prior, len(street.centroids), gps) if prior is not None else None
     return PruningPrior(prior, radius, source, figures)
 
 
-def place_route_by_facades(street: StreetSegments, overview: OverviewSegments, scene: Scene,
+def place_route_by_facades(street: StreetSegments, overview: OverviewSegments, model: SparseModel,
                            cfg: RoutePriorConfig, obs) -> RoutePlacement:
-    """The route placed by its façades (``toolkit.matching.route_prior``); a warning when unused."""
-    from toolkit.scene import load_sparse
-
-    model = load_sparse(scene, who="unary.distance_map (route placement)")
+    """The route of the COLMAP cameras placed by its façades (``toolkit.matching.route_prior``); a
+    warning when unused."""
     cams = street.level(model.centres[capture_order(model.image_names)])[:, :2]
     placed = place_route(street, overview, cams, cfg)
     obs.debug("route_placement", DebugText(placed.describe()))
@@ -79,12 +78,11 @@ def place_route_by_facades(street: StreetSegments, overview: OverviewSegments, s
     return placed
 
 
-def free_space_probes(scene: Scene, street: StreetSegments, samples: StreetSamples, geo: PairGeometry,
+def free_space_probes(model: SparseModel, street: StreetSegments, samples: StreetSamples, geo: PairGeometry,
                       cfg: FreeSpaceConfig, stats: dict) -> CH.SegmentPoints:
-    """Each segment's coarse points moved probe_offset_m towards the side its cameras saw it from."""
-    from toolkit.scene import load_sparse
-
-    cams = street.level(load_sparse(scene, who="unary.distance_map (free space)").centres)[:, :2]
+    """Each segment's coarse points moved probe_offset_m towards the side the cameras of ``model``
+    saw it from."""
+    cams = street.level(model.centres)[:, :2]
     outward = AN.observer_sides(cams, samples.walls[0], samples.walls[1])
     known = np.any(outward != 0, axis=1)
     stats["observer_side_known"] = f"{int(known.sum())}/{len(known)}"

@@ -13,11 +13,11 @@ the route placement (``toolkit.matching.route_prior``) gives a ``GpsPrior`` used
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 from pydantic import Field
 
+from toolkit.capture import StreetCapture
 from toolkit.matching.config import MatchingConfig
 from toolkit.matching.mrf import wrap_angle
 from toolkit.types import StreetSegments
@@ -61,14 +61,6 @@ class GpsPrior:
     fit_rms_m: np.ndarray | None = None
 
 
-def read_gps_csv(path: Path) -> tuple[list[str], np.ndarray, np.ndarray]:
-    """Names, (N,2) lon/lat, (N,) sigma_m (NaN when absent); layouts in ``toolkit.io.gps``."""
-    from toolkit.io.gps import read_gps_csv as read_fixes
-
-    fixes = read_fixes(path)
-    return list(fixes.names), fixes.lonlat, fixes.sigma_m
-
-
 def rigid_fit_2d(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Batched weighted 2D rigid fit dst ≈ R(θ) src + t. src, dst: (B,K,2); w: (B,K). → θ (B,), t (B,2)."""
     ws = w / np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
@@ -89,25 +81,25 @@ def _apply(theta: np.ndarray, t: np.ndarray, xy: np.ndarray) -> np.ndarray:
                      s[..., 0] * xy[..., 0] + c[..., 0] * xy[..., 1]], axis=-1) + t
 
 
-def gps_prior(scene, street: StreetSegments, n_local: int = 100, default_sigma_m: float = 10.0,
+def gps_prior(capture: StreetCapture, street: StreetSegments, n_local: int = 100, default_sigma_m: float = 10.0,
               warn=None) -> GpsPrior | None:
-    """The prior, or None (with a warning) when fewer than 3 fixes match COLMAP images."""
+    """The prior from the capture's fixes and COLMAP cameras (in the CRS of its scene), or None (with
+    a warning) when fewer than 3 fixes match COLMAP images."""
     from pyproj import Transformer
 
     from toolkit.io.gps import match_images
-    from toolkit.scene import load_sparse
 
-    path = scene.files.gps
-    names, lonlat, sigma = read_gps_csv(path)
-    model = load_sparse(scene, who="unary.distance_map (GPS pruning)")
+    fixes = capture.gps
+    names, lonlat, sigma = list(fixes.names), fixes.lonlat, fixes.sigma_m
+    model = capture.require_sparse("unary.distance_map (GPS pruning)")
     image = match_images(names, model.image_names)  # exact names, else file names
     hit = image >= 0
     if hit.sum() < 3:
         if warn:
-            warn(f"{path}: {int(hit.sum())} fix(es) match images of the COLMAP model; GPS pruning off")
+            warn(f"{capture.gps_path}: {int(hit.sum())} fix(es) match images of the COLMAP model; GPS pruning off")
         return None
     cam = street.level(model.centres[image[hit]])[:, :2]
-    tr = Transformer.from_crs("EPSG:4326", scene.crs, always_xy=True)
+    tr = Transformer.from_crs("EPSG:4326", capture.scene.crs, always_xy=True)
     east, north = tr.transform(lonlat[hit, 0], lonlat[hit, 1])
     world = np.stack([east, north], axis=1)
     sig = np.where(np.isfinite(sigma[hit]) & (sigma[hit] > 0), sigma[hit], default_sigma_m)

@@ -22,7 +22,7 @@ from toolkit.params import ParamGroup
 from toolkit.refine.bilinear import cells_inside, interpolate, world_to_rows_cols
 from toolkit.refine.columns import centred, minus_row
 from toolkit.refine.transforms import rotation_between, tilt_deg
-from toolkit.types import Grid, OverviewSegments, Scene
+from toolkit.types import Grid, OverviewSegments, Raster
 
 
 class GroundParams(ParamGroup):
@@ -65,26 +65,24 @@ class HeightGrid:
         return out
 
 
-def height_source(scene: Scene, overview: OverviewSegments) -> HeightGrid | None:
-    """The DSM, else the terrain model, else the over-view cloud rasterised (lowest z per cell) on
-    the over-view grid."""
-    from toolkit.scene import load_dem, load_points, load_raster
-
-    if scene.has("dsm") or scene.has("dem"):
-        r = load_raster(scene, "dsm", "refine") if scene.has("dsm") else load_dem(scene, "refine")
-        h = r.data[0].astype(np.float64)
-        h[r.nodata_mask] = np.nan
-        return HeightGrid(h, r.grid)
-    if scene.has("overview_cloud"):
-        pts = load_points(scene, "overview_cloud", "refine")
-        g = overview.grid
-        rc = np.floor(g.world_to_pixel(pts[:, :2]) + 0.5).astype(np.int64)
-        ok = (rc[:, 0] >= 0) & (rc[:, 1] >= 0) & (rc[:, 0] < g.height) & (rc[:, 1] < g.width)
-        h = np.full(g.height * g.width, np.inf)
-        np.minimum.at(h, rc[ok, 0] * g.width + rc[ok, 1], pts[ok, 2])
-        h[~np.isfinite(h)] = np.nan
-        return HeightGrid(h.reshape(g.height, g.width), g)
-    return None
+def height_source(heights: Raster | np.ndarray | None, overview: OverviewSegments) -> HeightGrid | None:
+    """``heights`` (``toolkit.scene.overview_heights``: the DSM or terrain model raster, or the
+    over-view cloud) as a grid: a raster as it is, the cloud rasterised (lowest z per cell) on the
+    over-view grid; None without heights."""
+    if heights is None:
+        return None
+    if isinstance(heights, Raster):
+        h = heights.data[0].astype(np.float64)
+        h[heights.nodata_mask] = np.nan
+        return HeightGrid(h, heights.grid)
+    pts = heights
+    g = overview.grid
+    rc = np.floor(g.world_to_pixel(pts[:, :2]) + 0.5).astype(np.int64)
+    ok = (rc[:, 0] >= 0) & (rc[:, 1] >= 0) & (rc[:, 0] < g.height) & (rc[:, 1] < g.width)
+    h = np.full(g.height * g.width, np.inf)
+    np.minimum.at(h, rc[ok, 0] * g.width + rc[ok, 1], pts[ok, 2])
+    h[~np.isfinite(h)] = np.nan
+    return HeightGrid(h.reshape(g.height, g.width), g)
 
 
 def trimmed_mean(x: np.ndarray, lo: float, hi: float, scratch: bool = False) -> float:

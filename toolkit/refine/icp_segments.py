@@ -8,12 +8,14 @@ else the over-view segments' outlines), ``register_segment`` places one segment 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 from scipy import ndimage
 
-from toolkit.refine.ground3d import GroundParams, GroundResult, ground_step, height_source
+from toolkit.capture import StreetCapture
+from toolkit.refine.ground3d import GroundParams, GroundResult, HeightGrid, ground_step
 from toolkit.refine.icp import (CloudIndex, IcpParams, IcpResult, accepted, file_normals, icp_cloud, icp_outline,
                                 outline_points, voxel_thin)
 from toolkit.refine.segments import SegmentPoints
@@ -21,14 +23,14 @@ from toolkit.refine.transforms import compose_eq5
 from toolkit.types import Matches, OverviewSegments, Scene, StreetSegments
 
 
-def overview_cloud(scene: Scene, target: str) -> CloudIndex | None:
-    """The over-view cloud (with the file's normals) when ``target`` is cloud, or auto and the scene has one."""
-    from toolkit.scene import load_points
+def uses_cloud(scene: Scene, target: str) -> bool:
+    """Whether ``target`` registers against the over-view cloud: cloud, or auto and the scene has one."""
+    return target == "cloud" or (target == "auto" and scene.has("overview_cloud"))
 
-    if not (target == "cloud" or (target == "auto" and scene.has("overview_cloud"))):
-        return None
-    xyz = load_points(scene, "overview_cloud", "refine.icp")
-    return CloudIndex(xyz, normals=file_normals(scene.files.overview_cloud, len(xyz)))
+
+def overview_cloud(xyz: np.ndarray, path: Path) -> CloudIndex:
+    """The over-view cloud ``xyz`` (read from ``path``) indexed, with the file's normals."""
+    return CloudIndex(xyz, normals=file_normals(path, len(xyz)))
 
 
 @dataclass(frozen=True)
@@ -42,9 +44,10 @@ class IcpTargets:
     boxes: list                  # bounding slices of the over-view segments (None: no pixel)
 
     @classmethod
-    def of(cls, street: StreetSegments, overview: OverviewSegments, scene: Scene, cloud: CloudIndex | None):
+    def of(cls, street: StreetSegments, overview: OverviewSegments, capture: StreetCapture, cloud: CloudIndex | None,
+           heights: HeightGrid | None):
         boxes = ndimage.find_objects(np.asarray(overview.label_image) + 1, max_label=len(overview))
-        return cls(overview, cloud, SegmentPoints(street, scene), height_source(scene, overview), boxes)
+        return cls(overview, cloud, SegmentPoints(street, capture), heights, boxes)
 
 
 @dataclass

@@ -16,10 +16,11 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
+from toolkit.capture import StreetCapture
 from toolkit.forked import map_chunks_forked
 from toolkit.observe import DebugPoints2D
 from toolkit.refine.finish import ConsistencyParams, compose, consistent, warn_heights, warn_rejected
-from toolkit.refine.ground3d import GroundParams, GroundResult, HeightGrid, ground_step, height_source, prepare_ground
+from toolkit.refine.ground3d import GroundParams, GroundResult, HeightGrid, ground_step, prepare_ground
 from toolkit.refine.joint import JointConfig, joint_transforms
 from toolkit.refine.propagate import footprint_window, predict_seed
 from toolkit.refine.route import neighbour_keys, route_positions
@@ -146,17 +147,16 @@ class Refinement:
     fits: Fits
 
     @classmethod
-    def of(cls, street: StreetSegments, overview: OverviewSegments, scene: Scene, graphs: Any, obs: Any, *,
-           search: SearchParams, ground: GroundParams, consistency: ConsistencyParams, route_aware: bool,
-           footprint_cell_m: float, max_footprint_points: int, min_inlier_ratio: float) -> Refinement:
-        """The refinement of ``street`` onto ``overview``, nothing registered yet; with ``route_aware``
-        neighbours are near in space and along the route (``toolkit.refine.route``)."""
-        from toolkit.scene import load_points
-
-        points = SegmentPoints(street, scene)
-        heights = height_source(scene, overview)
+    def of(cls, street: StreetSegments, overview: OverviewSegments, capture: StreetCapture, graphs: Any, obs: Any,
+           *, heights: HeightGrid | None, search: SearchParams, ground: GroundParams, consistency: ConsistencyParams,
+           route_aware: bool, footprint_cell_m: float, max_footprint_points: int,
+           min_inlier_ratio: float) -> Refinement:
+        """The refinement of ``street`` onto ``overview``, nothing registered yet; ``heights``: the
+        over-view heights (``ground3d.height_source``); with ``route_aware`` neighbours are near in space
+        and along the route (``toolkit.refine.route``)."""
+        points = SegmentPoints(street, capture)
         outlines = AllOutlines(overview.grid, overview.label_image, search.truncate_m)
-        route_s = route_positions(street, scene, load_points(scene, "street_cloud")) if route_aware \
+        route_s = route_positions(street, capture.sparse, capture.points) if route_aware \
             else np.full(len(street), np.nan)
         keys = neighbour_keys(input_anchors(street), route_s)
         return cls(street, overview, graphs, obs, points, heights, GroundSteps(points, heights, ground), outlines,

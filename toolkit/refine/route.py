@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from toolkit.threads import query_workers
-from toolkit.types import Scene, SparseModel, StreetSegments
+from toolkit.types import SparseModel, StreetSegments
 
 MAX_TREE_POINTS = 1_000_000
 
@@ -66,15 +66,14 @@ def sparse_segments(model: SparseModel, dense: np.ndarray, carrier: np.ndarray, 
     return np.where(np.isfinite(d), carrier[idx[np.minimum(nn, len(idx) - 1)]], -1)
 
 
-def route_positions(street: StreetSegments, scene: Scene, dense: np.ndarray, max_gap_m: float = 1.0) -> np.ndarray:
-    """(S,) metres along the route of each segment (NaN when no camera sees it or no model)."""
-    from toolkit.scene import load_sparse
-
+def route_positions(street: StreetSegments, model: SparseModel | None, dense: np.ndarray,
+                    max_gap_m: float = 1.0) -> np.ndarray:
+    """(S,) metres along the route of each segment (NaN when no camera sees it or no model); ``dense``:
+    the street cloud (metres), ``model``: the COLMAP model (``StreetCapture.sparse``)."""
     S = len(street)
     out = np.full(S, np.nan)
-    if not scene.has("sparse") or S == 0:
+    if model is None or S == 0:
         return out
-    model = load_sparse(scene)
     if len(model.observations) == 0 or len(model.image_names) < 2:
         return out
     carrier = np.asarray(street.carrier, np.int64)

@@ -11,19 +11,18 @@ from __future__ import annotations
 
 import numpy as np
 
+from toolkit.capture import StreetCapture
 from toolkit.errors import StageError
 from toolkit.refine.columns import minus_row
-from toolkit.types import Scene, StreetSegments
+from toolkit.types import StreetSegments
 
 
 class SegmentPoints:
-    def __init__(self, street: StreetSegments, scene: Scene) -> None:
-        from toolkit.scene import load_points
-
-        pts = load_points(scene, "street_cloud", "refine")
+    def __init__(self, street: StreetSegments, capture: StreetCapture) -> None:
+        pts = capture.points
         labels = np.asarray(street.point_labels)
         if len(labels) != len(pts):
-            raise StageError(f"street segments label {len(labels)} points but {scene.files.street_cloud} "
+            raise StageError(f"street segments label {len(labels)} points but {capture.cloud_path} "
                              f"holds {len(pts)}")
         # levelled lazily, per segment: only the façade and ground points are ever used
         self._points, self._normals = pts, street.normals

@@ -19,10 +19,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from toolkit.capture import StreetCapture
 from toolkit.refine.blas import single_threaded_blas
 from toolkit.refine.route import camera_route_positions, sparse_segments
 from toolkit.threads import map_in_order
-from toolkit.types import Registration, Scene, SegmentTransforms, SparseModel, StreetSegments
+from toolkit.types import Registration, SegmentTransforms, SparseModel, StreetSegments
 from toolkit.warp.blend import SegmentIndex, blend_rigid
 from toolkit.warp.cells import levelled_xy
 from toolkit.warp.model import PointWarp
@@ -81,27 +82,25 @@ def segment_route_positions(seg_of_point: np.ndarray, sparse_s: np.ndarray, S: i
     return out
 
 
-def warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Scene, k: int, d_min: float,
+def warp_scene(transforms: SegmentTransforms, street: StreetSegments, capture: StreetCapture, k: int, d_min: float,
                agree_tol_m: float = np.inf, agree_ratio: float = 0.0, max_gap_m: float = np.inf,
                cell_m: float = 0.5, passes: PassCheck = PassCheck(), relative: bool = False,
                camera_k: int | None = None) -> Registration:
     """Blend points over their anchor and its k neighbours, cameras over camera_k (None: k)."""
     with single_threaded_blas():
-        return _warp_scene(transforms, street, scene, k, d_min, agree_tol_m, agree_ratio, max_gap_m, cell_m, passes,
+        return _warp_scene(transforms, street, capture, k, d_min, agree_tol_m, agree_ratio, max_gap_m, cell_m, passes,
                            relative, k if camera_k is None else camera_k)
 
 
-def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Scene, k: int, d_min: float,
-                agree_tol_m: float, agree_ratio: float, max_gap_m: float, cell_m: float,
+def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, capture: StreetCapture, k: int,
+                d_min: float, agree_tol_m: float, agree_ratio: float, max_gap_m: float, cell_m: float,
                 passes: PassCheck, relative: bool, camera_k: int) -> Registration:
-    from toolkit.scene import load_points, load_sparse
-
     T = np.asarray(transforms.T, np.float64)
     valid = np.asarray(transforms.valid, bool)
-    pts = load_points(scene, "street_cloud", "warp")
+    pts = capture.points
     xy = levelled_xy(street, pts)
     carrier = np.asarray(street.carrier, np.int64)
-    model = load_sparse(scene, "warp") if scene.has("sparse") else None
+    model = capture.sparse
     seg_of_point = segment_s = sparse_s = None
     if model is not None and len(model.points3d):
         # the sparse points' segments among the valid carriers (camera anchors) and, for the pass check,
@@ -166,4 +165,4 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, scene: Sc
         t = -np.einsum("cab,cb->ca", R, pos)
     return Registration(points=moved, image_names=names, R=R, t=t, point_segment=anchors.astype(np.int64, copy=False),
                         camera_spread_m=spread,
-                        warp=warp.with_source(pts, anchors).for_input_frame(scene.street_scale.value))
+                        warp=warp.with_source(pts, anchors).for_input_frame(capture.scale.value))
