@@ -3,8 +3,8 @@
 A dense street point was triangulated from the images around one place of the route, so the
 trajectory's drift moved it with the poses of those cameras. After the bundle adjustment, every
 point therefore moves with the pose change of the camera that captured it instead of with the
-blend of segment transforms: p ↦ R'ᵀ (R p + t − t') for the capture camera's input pose (R, t)
-and adjusted pose (R', t') (docs/remake.md). The capture camera is the median observing image of
+blend of segment transforms: p ↦ R'ᵀ (s (R p + t) − t') for the capture camera's input pose
+(R, t), adjusted pose (R', t') and the warp's scale s there (docs/remake.md). The capture camera is the median observing image of
 the nearest sparse point (it knows which pass of the route saw the place), else the camera whose
 centre is nearest.
 """
@@ -43,6 +43,20 @@ def capture_cameras(points: np.ndarray, model: SparseModel, max_gap_m: float = 1
     return out
 
 
+def camera_scales(registration: Registration, points: np.ndarray, camera: np.ndarray, n_cameras: int) -> np.ndarray:
+    """(C,) the warp's scale (cube root of its maps' determinant) over each camera's points: the bundle
+    adjustment keeps the frame's scale error, which the segment transforms have fitted; a camera
+    without points takes that of the nearest camera (by index) with points; 1 without a warp."""
+    if registration.warp is None or len(points) == 0:
+        return np.ones(n_cameras)
+    maps = replace(registration.warp, street_scale=1.0).maps(points, registration.point_segment)
+    row_scale = np.cbrt(np.linalg.det(maps.A))[maps.rows]
+    count = np.bincount(camera, minlength=n_cameras)
+    mean = np.bincount(camera, weights=row_scale, minlength=n_cameras) / np.maximum(count, 1)
+    has = np.flatnonzero(count > 0)
+    return np.interp(np.arange(n_cameras), has, mean[has]) if len(has) else np.ones(n_cameras)
+
+
 def remake_registration(registration: Registration, points: np.ndarray, model: SparseModel,
                         R_after: np.ndarray, t_after: np.ndarray, max_gap_m: float = 10.0) -> Registration:
     """``registration`` with every street point moved by its capture camera's pose change; its stored
@@ -54,8 +68,8 @@ def remake_registration(registration: Registration, points: np.ndarray, model: S
     if len(points) != len(registration.points):
         raise StageError(f"adjust: the street cloud has {len(points)} points, the registration "
                          f"{len(registration.points)}: cannot re-make the points from the cameras")
-    maps = CameraMaps.between(model, R_after, t_after)
     camera = capture_cameras(points, model, max_gap_m)
+    maps = CameraMaps.between(model, R_after, t_after, camera_scales(registration, points, camera, len(model.R)))
     warp = registration.warp
     if warp is not None:
         warp = warp.following(maps, camera)

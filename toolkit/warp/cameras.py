@@ -21,12 +21,15 @@ class CameraMaps:
     origin: np.ndarray
 
     @classmethod
-    def between(cls, before: SparseModel, R_after: np.ndarray, t_after: np.ndarray) -> CameraMaps:
-        """The maps taking what camera c saw in ``before`` to where it sees it with (R_after, t_after)."""
-        A = np.einsum("cba,cbd->cad", R_after, before.R)
+    def between(cls, before: SparseModel, R_after: np.ndarray, t_after: np.ndarray,
+                scale: np.ndarray | None = None) -> CameraMaps:
+        """The maps taking what camera c saw in ``before`` to the same direction from (R_after, t_after),
+        at ``scale[c]`` (C,) times the depth (None: 1): p ↦ R_afterᵀ (s (R p + t) − t_after)."""
+        s = np.ones(len(R_after)) if scale is None else np.asarray(scale, np.float64)
+        A = s[:, None, None] * np.einsum("cba,cbd->cad", R_after, before.R)
         centres = -np.einsum("cba,cb->ca", R_after, t_after)
         origin = centres.mean(axis=0) if len(centres) else np.zeros(3)
-        b = np.einsum("cba,cb->ca", R_after, np.asarray(before.t, np.float64) - t_after) - origin
+        b = np.einsum("cba,cb->ca", R_after, s[:, None] * np.asarray(before.t, np.float64) - t_after) - origin
         return cls(A, b, origin)
 
     def at(self, camera: np.ndarray) -> PointMaps:
