@@ -235,6 +235,9 @@ def test_a_stored_warp_that_follows_the_cameras_moves_each_point_with_its_captur
     moved = warp.maps(xyz[:5000], warp.carriers(xyz[:5000])[0]).apply(xyz[:5000])
     metric = xyz[:5000] / warp.street_scale
     seen = np.einsum("nab,nb->na", before.R[cam], metric) + before.t[cam] / warp.street_scale
-    # where the adjusted camera sees the moved point is where the input camera saw the input point
+    # the adjusted camera sees the moved point in the direction the input camera saw the input
+    # point, at the warp's local scale times its depth
     again = np.einsum("nab,nb->na", after.R[cam], moved) + after.t[cam]
-    assert np.abs(again - seen).max() < 1e-6
+    ratio = np.linalg.norm(again, axis=1) / np.linalg.norm(seen, axis=1)
+    assert np.abs(again - ratio[:, None] * seen).max() < 1e-6
+    assert np.abs(ratio - 1).max() < 0.05

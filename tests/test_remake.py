@@ -29,20 +29,21 @@ def test_the_capture_camera_is_the_median_observer_of_the_nearest_sparse_point_e
     assert capture_cameras(points, model, max_gap_m=10.0).tolist() == [1, 0, 4]
 
 
-def test_a_camera_map_keeps_each_point_where_its_camera_saw_it():
+def test_a_camera_map_keeps_each_point_in_the_direction_its_camera_saw_it_at_the_scaled_depth():
     rng = np.random.default_rng(0)
     centres = rng.normal(size=(4, 3)) * 20
     before = _model(centres, np.zeros((0, 3)), np.zeros((0, 4)))
     angle = rng.normal(size=(4, 3)) * 0.1
     R_after = np.stack([_rotation(a) for a in angle])
     t_after = rng.normal(size=(4, 3)) * 50
-    maps = CameraMaps.between(before, R_after, t_after)
     cam = rng.integers(0, 4, 200)
     p = rng.normal(size=(200, 3)) * 30
-    moved = maps.at(cam).apply(p)
     seen_before = np.einsum("nab,nb->na", before.R[cam], p) + before.t[cam]
-    seen_after = np.einsum("nab,nb->na", R_after[cam], moved) + t_after[cam]
-    np.testing.assert_allclose(seen_after, seen_before, atol=1e-9)
+    for scale in (None, np.array([1.0, 1.02, 0.97, 1.5])):
+        moved = CameraMaps.between(before, R_after, t_after, scale).at(cam).apply(p)
+        seen_after = np.einsum("nab,nb->na", R_after[cam], moved) + t_after[cam]
+        s = np.ones(4) if scale is None else scale
+        np.testing.assert_allclose(seen_after, s[cam, None] * seen_before, atol=1e-9)
 
 
 def _rotation(w: np.ndarray) -> np.ndarray:
