@@ -20,26 +20,21 @@ from toolkit.errors import StageError
 from toolkit.threads import query_workers
 from toolkit.types import Registration, SparseModel
 from toolkit.warp.cameras import CameraMaps
+from toolkit.warp.passes import median_observers
 
 
 def capture_cameras(points: np.ndarray, model: SparseModel, max_gap_m: float = 10.0) -> np.ndarray:
     """(N,) index of the camera each point was captured from (the rule of the module doc)."""
-    obs = np.asarray(model.observations)
-    n_points3d = len(model.points3d)
     out = np.empty(len(points), np.int64)
     _, out[:] = cKDTree(model.centres).query(points, workers=query_workers(len(points)))
-    if len(obs) == 0 or n_points3d == 0:
+    observer = median_observers(model)
+    seen = np.flatnonzero(observer >= 0)
+    if len(seen) == 0:
         return out
-    point, image = obs[:, 1].astype(np.int64), obs[:, 0].astype(np.int64)
-    order = np.lexsort((image, point))
-    point, image = point[order], image[order]
-    count = np.bincount(point, minlength=n_points3d)
-    seen = np.flatnonzero(count > 0)
-    median_image = image[np.searchsorted(point, seen) + (count[seen] - 1) // 2]
     dist, nn = cKDTree(np.asarray(model.points3d, np.float64)[seen]).query(
         points, distance_upper_bound=max_gap_m, workers=query_workers(len(points)))
     hit = np.isfinite(dist)
-    out[hit] = median_image[nn[hit]]
+    out[hit] = observer[seen][nn[hit]]
     return out
 
 

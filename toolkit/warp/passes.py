@@ -26,21 +26,32 @@ from toolkit.threads import query_workers
 from toolkit.types import SparseModel
 
 
-def sparse_route_positions(model: SparseModel) -> np.ndarray:
-    """(P,) route position (metres) of each sparse point: lower median over its observing cameras."""
+def median_observers(model: SparseModel) -> np.ndarray:
+    """(P,) the lower-median observing image (index in model order) of each sparse point; -1: none."""
     P = len(model.points3d)
-    out = np.full(P, np.nan)
-    if P == 0 or len(model.observations) == 0 or len(model.image_names) < 2:
+    out = np.full(P, -1, np.int64)
+    if P == 0 or len(model.observations) == 0:
         return out
-    s_cam = camera_route_positions(model)
     pt = model.observations[:, 1].astype(np.int64)
-    s = s_cam[model.observations[:, 0].astype(np.int64)]
-    order = np.lexsort((s, pt))
-    pt, s = pt[order], s[order]
+    img = model.observations[:, 0].astype(np.int64)
+    order = np.lexsort((img, pt))
+    pt, img = pt[order], img[order]
     start = np.searchsorted(pt, np.arange(P))
     count = np.bincount(pt, minlength=P)
     has = count > 0
-    out[has] = s[start[has] + (count[has] - 1) // 2]
+    out[has] = img[start[has] + (count[has] - 1) // 2]
+    return out
+
+
+def sparse_route_positions(model: SparseModel) -> np.ndarray:
+    """(P,) route position (metres) of each sparse point: lower median over its observing cameras
+    (route positions grow with the image order, so that of the median observer)."""
+    out = np.full(len(model.points3d), np.nan)
+    if len(model.image_names) < 2:
+        return out
+    observer = median_observers(model)
+    seen = observer >= 0
+    out[seen] = camera_route_positions(model)[observer[seen]]
     return out
 
 
