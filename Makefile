@@ -15,12 +15,13 @@ syslibs:
 	  (apt-get update -qq && apt-get install -y -qq libusb-1.0-0 >/dev/null) || \
 	  (sudo apt-get update -qq && sudo apt-get install -y -qq libusb-1.0-0 >/dev/null); }
 
-# pip's output goes to .venv/install.log and is shown only when the install fails.
-$(STAMP): pyproject.toml
+# pip's output goes to .venv/install.log and is shown only when the install fails. constraints.txt pins
+# every dependency to the versions the tests last passed with (a new release once changed a result).
+$(STAMP): pyproject.toml constraints.txt
 	@test -x $(BIN)/python || { echo "creating $(VENV)"; $(PY) -m venv $(VENV); }
 	@echo "installing crossview and its dependencies into $(VENV) (log: $(VENV)/install.log)"
 	@{ $(BIN)/python -m pip install -q --upgrade pip && \
-	   $(BIN)/python -m pip install -q -e '.[dev]'; } > $(VENV)/install.log 2>&1 || \
+	   $(BIN)/python -m pip install -q -c constraints.txt -e '.[dev]'; } > $(VENV)/install.log 2>&1 || \
 	  { cat $(VENV)/install.log; echo "install failed (see above)"; exit 1; }
 	@touch $(STAMP)
 

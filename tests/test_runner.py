@@ -143,7 +143,7 @@ def test_partial_registration_is_said_plainly(tmp_path: Path, recipe: Path, mini
 
     res = run_recipe(recipe, scene=mini_scene, out=tmp_path / "ok", registry=fake_registry(), rerun=False)
     assert coverage(res.results)["registered_share"] == 1.0 and not res.warnings
-    # the same run with its only segment rejected by refine: every point still carried, and said so
+    # the same run with its only segment rejected by refine: said so, and nothing is moved
     import dataclasses
 
     from tests import fake_stages
@@ -158,3 +158,5 @@ def test_partial_registration_is_said_plainly(tmp_path: Path, recipe: Path, mini
     metrics = json.loads((tmp_path / "partial/metrics.json").read_text())
     assert metrics["coverage"]["n_registered"] == 0
     assert any("partial registration: only 0 of 1" in w for w in metrics["warnings"])
+    # nothing registered: the later steps are skipped, no registered cloud, and the run is unreliable
+    assert not list((tmp_path / "partial").glob("registered.*")) and metrics["status"] == "unreliable"

@@ -94,7 +94,8 @@ def write_outputs(out: Path, plan, outputs: RunOutputs, timings: dict[str, float
         warnings.append(
             f"partial registration: only {cov['n_registered']} of {cov['n_street_segments']} street segments "
             f"({100 * cov['points_on_registered_segments_share']:.0f} % of the points) were registered by their "
-            "own transform; the other points are carried by the blended transforms of registered neighbours")
+            "own transform; " + ("the other points are carried by the blended transforms of registered neighbours"
+                                 if outputs.registration is not None else "no registered cloud was written"))
 
     if outputs.registration is not None:
         from toolkit.export import write_registered

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Iterable
 
+import numpy as np
 from pydantic import ValidationError
 from threadpoolctl import threadpool_limits
 
@@ -184,7 +185,18 @@ def execute(plan: Plan, obs: Observer | None = None,
                 for name in stage_of[s.name].remakes():  # e.g. the adjust step's re-made registration
                     if getattr(out, name, None) is not None:
                         outputs = replace(outputs, **{name: getattr(out, name)})
+            if nothing_registered(outputs, steps[i:]):
+                obs.warn("no street segment was registered: the steps after refine are skipped and the run "
+                         "is assessed as it stands")
+                break
     return outputs, timings
+
+
+def nothing_registered(outputs: RunOutputs, rest: list) -> bool:
+    """True once refine has run and kept no transform while steps remain: they would have nothing to
+    move, and the run is then a failed registration (exit 4), not a bad input."""
+    t = outputs.transforms
+    return bool(rest) and t is not None and not np.asarray(t.valid, bool).any()
 
 
 class _LogCollector(logging.Handler):

@@ -19,6 +19,7 @@ import numpy as np
 from toolkit.capture import StreetCapture
 from toolkit.errors import CrossviewError
 from toolkit.refine.transforms import apply_each, scale_of
+from toolkit.street_scale import camera_height
 from toolkit.types import (
     AdjustedCameras,
     ConjugateGraphs,
@@ -202,7 +203,7 @@ def _hard_camera_height(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
     h = f.get("camera_height_median_m")
     if h is None or rule.min_camera_height_m <= h <= rule.max_camera_height_m:
         return None
-    return (f"the cameras sit {h:.1f} m above the registered street ground (median; {rule.min_camera_height_m:g}-"
+    return (f"the cameras sit {h:.1f} m above the street ground (median; {rule.min_camera_height_m:g}-"
             f"{rule.max_camera_height_m:g} m expected): the street scale is likely wrong (set street_scale, or "
             f"give street/gps.csv)")
 
@@ -219,7 +220,7 @@ def _hard_registered(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
 HARD_CHECKS = {"gps_residual_ratio": _hard_gps, "facade_support_share": _hard_facades,
                "facade_distance_median_m": _hard_facade_distance,
                "outside_grid_share": _hard_outside, "neighbour_disagree_share": _hard_neighbours,
-               "registered_point_share": _hard_registered, "camera_height_median_m": _hard_camera_height,
+               "camera_height_median_m": _hard_camera_height, "registered_point_share": _hard_registered,
                "segment_scale_median": _hard_segment_scale}
 
 SOFT_REASONS = {
@@ -304,6 +305,9 @@ def measure(outputs: RunOutputs, params: AssessParams | None = None) -> dict[str
     figures["outside_grid_share"] = outside_grid_share(registration, overview, params.max_points)
     figures.update(camera_spread(registration))
     figures["camera_height_median_m"] = camera_height_m(registration, street, params.max_points)
+    if figures["camera_height_median_m"] is None and registration is None and street is not None and len(street) \
+            and outputs.capture is not None and outputs.capture.sparse_path is not None:
+        figures["camera_height_median_m"] = camera_height(street, outputs.capture)  # nothing registered
     figures.update(bundle_adjustment(cameras))
     figures.update(gps_residuals(outputs.capture, registration, cameras))
     return {k: _round(v) for k, v in figures.items()}
