@@ -74,7 +74,7 @@ def street_labels(out: Path, scene: Path) -> np.ndarray:
 
     plan = build(load_recipe(out / "recipe.yaml"), scene)
     spec, stage = next((sp, st) for sp, st in plan.stages if sp.name == "street")
-    return np.asarray(stage(plan.scene, NullObserver()).point_labels, np.int64)
+    return np.asarray(stage(plan.scene, plan.capture, NullObserver()).point_labels, np.int64)
 
 
 def classify(out: Path, scene: Path) -> dict:

@@ -186,8 +186,6 @@ CASES: list[tuple[str, str, Mutation, str]] = [
     ("footprints-projected-no-crs", OSM, lambda s, t: _projected_footprints(s) or [], "footprints.geojson"),
     ("footprints-invalid-json", OSM, lambda s, t: _footprints(s, "{not json") or [], "footprints.geojson: invalid GeoJSON"),
     ("footprints-all-invalid", OSM, lambda s, t: _edit_footprints(s, _collapsed_ring) or [], "footprints.geojson"),
-    ("nothing-matches", OSM, lambda s, t: _edit_footprints(s, lambda r: [[x + 0.004, y] for x, y in r]) or [],
-     "registered nothing"),
     ("footprints-empty", OSM, lambda s, t: _footprints(s, {"type": "FeatureCollection", "features": []}) or [],
      "footprints.geojson"),
     ("osm-no-buildings", OSM, lambda s, t: _manifest(s, lambda x: x.replace("  footprints: overview/footprints.geojson\n", ""))
@@ -242,3 +240,20 @@ def test_bad_input(case_id, recipe, mutate, fragment, base_scene, tmp_path, caps
 
 def test_suite_has_at_least_30_cases():
     assert len(CASES) >= 30
+
+
+def test_footprints_far_from_the_route_end_unreliable_not_as_bad_input(base_scene, tmp_path, capsys):
+    """Footprints ~300 m east of the route: readable input that registers nothing is a failed
+    registration (exit 4, assessed and written, no registered cloud), not an exit-2 input error."""
+    import json
+
+    scene = _copy_scene(base_scene, tmp_path / "scene")
+    _edit_footprints(scene, lambda r: [[x + 0.004, y] for x, y in r])
+    out = tmp_path / "out"
+    code = main(["run", OSM, "--scene", str(scene), "--out", str(out), "-q", "--no-rerun"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 4, err
+    assert err[-1].startswith("registration unreliable:"), err
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["status"] == "unreliable"
+    assert not list(out.glob("registered.*"))
