@@ -40,7 +40,7 @@ from pydantic import Field
 
 from toolkit.capture import StreetCapture
 from toolkit.params import GroupedParams, group
-from toolkit.refine.blas import single_threaded_blas
+from toolkit.threads import single_threaded_blas
 from toolkit.refine.finish import ConsistencyParams, warn_rejected
 from toolkit.refine.ground3d import GroundParams, height_source
 from toolkit.refine.joint import JointConfig

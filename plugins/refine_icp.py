@@ -18,7 +18,7 @@ from pydantic import Field
 
 from toolkit.capture import StreetCapture
 from toolkit.params import GroupedParams, group
-from toolkit.refine.blas import single_threaded_blas
+from toolkit.threads import single_threaded_blas
 from toolkit.refine.finish import ConsistencyParams, finish
 from toolkit.refine.ground3d import GroundParams, height_source
 from toolkit.refine.icp import IcpParams

@@ -19,7 +19,6 @@ from typing import Any
 
 import numpy as np
 from pydantic import Field
-from threadpoolctl import threadpool_limits
 
 from toolkit.capture import StreetCapture
 from toolkit.stage import Stage, StageParams
@@ -38,6 +37,7 @@ from toolkit.street.params import GroupedParams, group
 from toolkit.street.segments import facade_segments
 from toolkit.street.split import SplitConfig
 from toolkit.street.vertical import VerticalConfig
+from toolkit.threads import single_threaded_blas
 from toolkit.types import Scene, StreetSegments
 
 log = logging.getLogger("crossview.street")
@@ -98,7 +98,7 @@ class RegionGrowing(Stage):
     def segment(self, points: np.ndarray, obs: Any) -> StreetSegments:
         """Segment an (N,3) cloud given as an array (the scene-free entry point); seconds per step go to
         ``obs`` (``timings/<step>``). BLAS threads gain nothing on (N,3) @ (3,3) and lose ~25x under load."""
-        with threadpool_limits(1, user_api="blas"), contextlib.closing(StepClock(obs, "street")) as clock:
+        with single_threaded_blas(), contextlib.closing(StepClock(obs, "street")) as clock:
             return self._segment(points, obs, clock)
 
     def _segment(self, points: np.ndarray, obs: Any, clock: StepClock) -> StreetSegments:

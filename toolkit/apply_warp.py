@@ -106,7 +106,7 @@ def _out_path(run_dir: Path, cloud: Path, out: Path | None, mesh: bool) -> Path:
 
 def _write(stored: StoredWarp, cloud: Path, source: CloudSource | None, tmp: Path, mesh: bool,
            chunk_points: int) -> CarrierStats:
-    from toolkit.refine.blas import single_threaded_blas
+    from toolkit.threads import single_threaded_blas
 
     grid = LasGrid(stored.las_offset_m, stored.las_scale_m)
     with single_threaded_blas():

@@ -13,7 +13,6 @@ from typing import Any, Iterable
 
 import numpy as np
 from pydantic import ValidationError
-from threadpoolctl import threadpool_limits
 
 from toolkit.capture import StreetCapture
 from toolkit.errors import CrossviewError, RecipeError, SceneError
@@ -25,7 +24,7 @@ from toolkit.scene import FIELD_TO_MANIFEST, load_scene
 from toolkit.street_scale import check_assumed_scale, resolve_street_scale
 from toolkit.stage import KIND_INPUTS, KIND_OPTIONAL, KIND_OUTPUT, KIND_OUTPUT_TYPE, RUN_INPUTS, Stage
 from toolkit.status import Assessment, assess
-from toolkit.threads import thread_budget
+from toolkit.threads import single_threaded_blas, thread_budget
 from toolkit.types import RunOutputs, Scene
 
 
@@ -151,7 +150,7 @@ def execute(plan: Plan, obs: Observer | None = None,
     stage_of = {spec.name: stage for spec, stage in steps}
     # Our BLAS work is tall-skinny ((N,3) @ (3,3)): OpenBLAS threads gain nothing there and, on a
     # loaded machine, spin-wait (0.27 s vs 0.0098 s measured for one such product under load).
-    with threadpool_limits(1, user_api="blas"), ThreadPoolExecutor(1, "crossview-step") as pool:
+    with single_threaded_blas(), ThreadPoolExecutor(1, "crossview-step") as pool:
         early = Prefetcher(steps, pool)
 
         def behind(k: int, buffered: BufferedObserver) -> tuple[Any, float]:

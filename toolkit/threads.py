@@ -15,6 +15,8 @@ from contextlib import contextmanager
 from contextvars import ContextVar
 from typing import Callable, Iterable, Iterator, TypeVar
 
+from threadpoolctl import threadpool_limits
+
 T = TypeVar("T")
 R = TypeVar("R")
 
@@ -67,3 +69,11 @@ def map_in_order(fn: Callable[[T], R], items: Iterable[T], workers: int | None =
         return map(fn, items)
     with ThreadPoolExecutor(n) as pool:
         return iter(list(pool.map(fn, items)))
+
+
+def single_threaded_blas():
+    """numpy's BLAS on one thread within this block (process-wide): the one limiter the runner and
+    every stage that may run outside it use. Our BLAS calls are tall-skinny products ((N,3) @ (3,3))
+    and vector-sized LSMR steps, where BLAS threads gain nothing and, on a loaded machine, lose much
+    to synchronisation (measured: (3.5 M,3) @ (3,3) 6–7.5 s multi-threaded, 0.3 s on one thread)."""
+    return threadpool_limits(1, user_api="blas")

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from toolkit.adjust.model import project
-from toolkit.refine.blas import single_threaded_blas
+from toolkit.threads import single_threaded_blas
 from toolkit.types import SparseModel
 
 

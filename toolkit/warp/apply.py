@@ -20,9 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from toolkit.capture import StreetCapture
-from toolkit.refine.blas import single_threaded_blas
 from toolkit.refine.route import camera_route_positions, sparse_segments
-from toolkit.threads import map_in_order
+from toolkit.threads import map_in_order, single_threaded_blas
 from toolkit.types import Registration, SegmentTransforms, SparseModel, StreetSegments
 from toolkit.warp.blend import SegmentIndex, blend_rigid
 from toolkit.warp.cells import levelled_xy
