@@ -9,7 +9,7 @@ import pytest
 
 from tests.conftest import synthetic_scene
 from toolkit.capture import StreetCapture
-from toolkit.matching.route_prior import RoutePriorConfig, capture_order, place_route
+from toolkit.matching.route_prior import RoutePlacement, RoutePriorConfig, agree_m, capture_order, place_route
 from toolkit.observe import NullObserver
 from toolkit.registry import Registry
 from toolkit.scene import load_array, load_scene, load_sparse
@@ -51,6 +51,18 @@ def test_the_route_is_placed_within_metres_of_the_truth(tiny, source):
     # the centroid is the mean of the façade cells, the truth the mean of all façade points: a few metres
     assert np.nanmedian(err) < 4.0
     assert placed.window_scores.min() > RoutePriorConfig().min_score
+    assert placed.figures()["links_broken"] == 0
+
+
+def test_a_window_placed_apart_from_its_neighbours_is_a_broken_link():
+    """links_broken counts the links whose disagreement exceeds what the chain accepts there
+    (agree_m + 5 % of the windows' distance): 20 m is within it at 125 m apart, 930 m is not."""
+    cfg = RoutePriorConfig()
+    centres = np.array([125.0, 250.0, 375.0, 625.0])
+    links = np.array([20.0, 930.0, agree_m(cfg, 250.0) - 0.1])
+    placed = RoutePlacement(None, (), centres, np.full(4, 0.6), links, 1.0, link_agree_m=agree_m(cfg, np.diff(centres)))
+    assert agree_m(cfg, 125.0) > 20.0
+    assert placed.figures()["links_broken"] == 1 and placed.figures()["links"] == 3
 
 
 def test_a_street_from_elsewhere_is_not_placed(tiny):

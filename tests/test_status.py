@@ -31,7 +31,7 @@ GOOD = {
     "facade_support_share": 0.9998, "facade_distance_median_m": 0.3468, "outside_grid_share": 0.0,
     "camera_spread_median_m": 0.3249, "camera_spread_p95_m": 1.1852, "ba_rms_before_px": 3.4288,
     "ba_rms_after_px": 0.4251, "ba_iterations": 10, "gps_fixes": 201, "gps_sigma_m": 3.0,
-    "gps_residual_median_m": 3.4629, "gps_residual_p90_m": 5.4902,
+    "gps_residual_median_m": 3.4629, "gps_residual_p90_m": 5.4902, "prior_links": 4, "prior_links_broken": 0,
 }
 
 
@@ -75,6 +75,7 @@ def test_good_figures_are_ok_with_full_confidence():
     ({"camera_height_median_m": 0.5}, "street scale is likely wrong"),
     ({"camera_height_median_m": 9.0}, "street scale is likely wrong"),
     ({"segment_scale_median": 0.955}, "median scale of 0.955"),
+    ({"prior_links_broken": 2, "prior_links": 9, "prior_link_max_m": 1119.2}, "route placement puts 2 of its 9"),
 ])
 def test_each_hard_reason_fires_first(change, fragment):
     verdict = StatusRule().judge({**GOOD, **change})

@@ -68,6 +68,7 @@ class StatusRule:
     max_neighbour_disagree_share: float = 0.5
     max_outside_grid_share: float = 0.5
     max_segment_scale_deviation: float = 0.035   # |median segment scale − 1|: drift of ±3 % moves it ≤ 1.5 %
+    max_route_links_broken: int = 0     # route placement (no GPS): neighbouring windows placed apart
     min_camera_height_m: float = 0.8    # street capture: handheld ~1.5 m, car roof ~2.5 m, mast ~4 m
     max_camera_height_m: float = 6.0
     gps_sigma_factor: float = 3.0       # GPS tolerance = max(gps_sigma_factor · σ, gps_min_tolerance_m)
@@ -191,6 +192,14 @@ def _hard_neighbours(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
             f"by their own transforms (median {f.get('neighbour_gap_median_m') or 0:.1f} m): wrong matches")
 
 
+def _hard_route_chain(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
+    n = f.get("prior_links_broken")
+    if n is None or n <= rule.max_route_links_broken:
+        return None
+    return (f"the route placement puts {n} of its {f.get('prior_links')} pairs of neighbouring windows apart (by up to "
+            f"{f.get('prior_link_max_m') or 0:.0f} m): part of the route may be matched to the wrong buildings")
+
+
 def _hard_segment_scale(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
     m = f.get("segment_scale_median")
     if m is None or abs(m - 1.0) <= rule.max_segment_scale_deviation:
@@ -220,6 +229,7 @@ def _hard_registered(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
 HARD_CHECKS = {"gps_residual_ratio": _hard_gps, "facade_support_share": _hard_facades,
                "facade_distance_median_m": _hard_facade_distance,
                "outside_grid_share": _hard_outside, "neighbour_disagree_share": _hard_neighbours,
+               "prior_links_broken": _hard_route_chain,
                "camera_height_median_m": _hard_camera_height, "registered_point_share": _hard_registered,
                "segment_scale_median": _hard_segment_scale}
 
@@ -349,7 +359,7 @@ def matching_figures(matches: Matches | None) -> dict[str, Any]:
 
 def prior_figures(costs: DataCosts | None) -> dict[str, Any]:
     """The unary stage's own truth-free figures of the prior it pruned candidates with (DataCosts.prior,
-    prior_figures), scalars flattened as ``prior_<key>``: recorded for calibration, not yet judged."""
+    prior_figures), scalars flattened as ``prior_<key>``; the rule judges ``prior_links_broken``."""
     out: dict[str, Any] = {"prior": getattr(costs, "prior", None)}
     for key, value in _flat(getattr(costs, "prior_figures", None) or {}):
         out[f"prior_{key}"] = value

@@ -74,7 +74,9 @@ class Placement:
 class RoutePlacement:
     """The chosen placement of each window, the prior it gives, and what tells a user how sure it is:
     window_scores (W,), link_m (W-1,) disagreement of neighbouring windows, top_share: share of
-    windows whose chosen placement is also their best alone."""
+    windows whose chosen placement is also their best alone, link_agree_m (W-1,) the disagreement
+    each link may have before the chain pays its full cost (beyond it, one of the two windows is
+    placed elsewhere than the other: a broken link)."""
 
     prior: GpsPrior | None
     windows: tuple[Placement, ...]
@@ -83,6 +85,7 @@ class RoutePlacement:
     link_m: np.ndarray
     top_share: float
     reason: str = ""
+    link_agree_m: np.ndarray | None = None
 
     def figures(self) -> dict:
         """Truth-free figures for the run's self-assessment (JSON-able, rounded)."""
@@ -90,6 +93,8 @@ class RoutePlacement:
                 "score_median": round(float(np.median(self.window_scores)), 4) if len(self.window_scores) else None,
                 "score_min": round(float(self.window_scores.min()), 4) if len(self.window_scores) else None,
                 "link_max_m": round(float(self.link_m.max()), 3) if len(self.link_m) else None,
+                "links_broken": None if self.link_agree_m is None else int((self.link_m > self.link_agree_m).sum()),
+                "links": len(self.link_m),
                 "best_alone_share": round(self.top_share, 4)}
 
     def describe(self) -> str:
@@ -231,6 +236,12 @@ def _seed_from_neighbours(fine: OutlineMap, windows: list[list[Placement]], wind
     return out
 
 
+def agree_m(cfg: RoutePriorConfig, gap_m):
+    """The disagreement neighbouring windows ``gap_m`` apart may have before their link costs in full:
+    ``agree_m`` plus 5 % of the route between them (drift grows with it)."""
+    return cfg.agree_m + 0.05 * gap_m
+
+
 def _chain(windows: list[list[Placement]], links: list[np.ndarray], cfg: RoutePriorConfig,
            gaps_m: np.ndarray) -> tuple[list[int], np.ndarray]:
     """Viterbi over windows: maximise Σ score − link_cost·Σ min(disagreement / agree, 1)."""
@@ -241,7 +252,7 @@ def _chain(windows: list[list[Placement]], links: list[np.ndarray], cfg: RoutePr
     back = []
     dist_tables = []
     for w in range(1, len(windows)):
-        agree = cfg.agree_m + 0.05 * gaps_m[w - 1]
+        agree = agree_m(cfg, gaps_m[w - 1])
         d = np.array([[link(a, b, links[w - 1]) for b in windows[w]] for a in windows[w - 1]])
         total = value[:, None] - cfg.link_cost * np.minimum(d / agree, 1.0)
         back.append(np.argmax(total, axis=0))
@@ -290,7 +301,7 @@ def place_route(street: StreetSegments, overview: OverviewSegments, cameras_xy: 
     links = [_cameras_between(cameras_xy, arc, a, b) for a, b in zip(centres[:-1], centres[1:])]
     pick, link_m = _chain(windows, links, cfg, np.diff(centres))
     for _ in range(2):  # a window off the chain tries its chosen neighbours' placements, then the chain again
-        agree = cfg.agree_m + 0.05 * np.diff(centres)
+        agree = agree_m(cfg, np.diff(centres))
         off = np.zeros(len(windows), bool)
         off[:-1] |= link_m > agree
         off[1:] |= link_m > agree
@@ -303,14 +314,15 @@ def place_route(street: StreetSegments, overview: OverviewSegments, cameras_xy: 
             windows[w] = sorted(windows[w] + _refine(fine, window_pts[w], tried, cfg, reach=2.0),
                                 key=lambda q: -q.score)
         pick, link_m = _chain(windows, links, cfg, np.diff(centres))
+    agree = agree_m(cfg, np.diff(centres))
     chosen = tuple(windows[w][h] for w, h in enumerate(pick))
     scores = np.array([p.score for p in chosen])
     top_share = float(np.mean([h == 0 for h in pick]))
     if np.median(scores) < cfg.min_score:
         return RoutePlacement(None, chosen, centres, scores, link_m, top_share,
-                              f"median window score {np.median(scores):.2f} < {cfg.min_score}")
+                              f"median window score {np.median(scores):.2f} < {cfg.min_score}", agree)
     prior = _segment_prior(street, seg, s_pt, chosen, centres, cfg)
-    return RoutePlacement(prior, chosen, centres, scores, link_m, top_share)
+    return RoutePlacement(prior, chosen, centres, scores, link_m, top_share, link_agree_m=agree)
 
 
 def _facade_cells(street: StreetSegments, cell_m: float) -> tuple[np.ndarray, np.ndarray]:
