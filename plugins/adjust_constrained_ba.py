@@ -38,8 +38,8 @@ from toolkit.adjust.remake import remake_registration
 from toolkit.capture import StreetCapture
 from toolkit.forked import forks, run_forked
 from toolkit.io.colmap import replace_poses
-from toolkit.threads import single_threaded_blas
 from toolkit.stage import Stage, StageParams
+from toolkit.threads import single_threaded_blas
 from toolkit.types import AdjustedCameras, Registration, Scene
 
 

@@ -9,8 +9,8 @@ from __future__ import annotations
 from toolkit.adjust.model import point_errors_px, registered_poses, residuals, rms_px, warp_points3d
 from toolkit.capture import StreetCapture
 from toolkit.io.colmap import replace_poses
-from toolkit.threads import single_threaded_blas
 from toolkit.stage import Stage, StageParams
+from toolkit.threads import single_threaded_blas
 from toolkit.types import AdjustedCameras, Registration, Scene, SparseModel
 
 

@@ -40,7 +40,6 @@ from pydantic import Field
 
 from toolkit.capture import StreetCapture
 from toolkit.params import GroupedParams, group
-from toolkit.threads import single_threaded_blas
 from toolkit.refine.finish import ConsistencyParams, warn_rejected
 from toolkit.refine.ground3d import GroundParams, height_source
 from toolkit.refine.joint import JointConfig
@@ -50,6 +49,7 @@ from toolkit.refine.scale import ScaleConfig
 from toolkit.refine.search2d import SearchParams
 from toolkit.scene import overview_heights
 from toolkit.stage import Stage, StageParams
+from toolkit.threads import single_threaded_blas
 from toolkit.types import Matches, OverviewSegments, Scene, SegmentTransforms, StreetSegments
 
 

@@ -18,13 +18,13 @@ from pydantic import Field
 
 from toolkit.capture import StreetCapture
 from toolkit.params import GroupedParams, group
-from toolkit.threads import single_threaded_blas
 from toolkit.refine.finish import ConsistencyParams, finish
 from toolkit.refine.ground3d import GroundParams, height_source
 from toolkit.refine.icp import IcpParams
 from toolkit.refine.icp_segments import IcpFits, IcpTargets, overview_cloud, register_segment, uses_cloud
 from toolkit.scene import load_cloud, overview_heights
 from toolkit.stage import Stage
+from toolkit.threads import single_threaded_blas
 from toolkit.types import Matches, OverviewSegments, Scene, SegmentTransforms, StreetSegments
 
 

@@ -236,7 +236,7 @@ def _seed_from_neighbours(fine: OutlineMap, windows: list[list[Placement]], wind
     return out
 
 
-def agree_m(cfg: RoutePriorConfig, gap_m):
+def agree_m(cfg: RoutePriorConfig, gap_m: float | np.ndarray) -> float | np.ndarray:
     """The disagreement neighbouring windows ``gap_m`` apart may have before their link costs in full:
     ``agree_m`` plus 5 % of the route between them (drift grows with it)."""
     return cfg.agree_m + 0.05 * gap_m
@@ -300,8 +300,8 @@ def place_route(street: StreetSegments, overview: OverviewSegments, cameras_xy: 
         return RoutePlacement(None, (), centres, np.zeros(0), np.zeros(0), 0.0, "no window with façades")
     links = [_cameras_between(cameras_xy, arc, a, b) for a, b in zip(centres[:-1], centres[1:])]
     pick, link_m = _chain(windows, links, cfg, np.diff(centres))
+    agree = agree_m(cfg, np.diff(centres))
     for _ in range(2):  # a window off the chain tries its chosen neighbours' placements, then the chain again
-        agree = agree_m(cfg, np.diff(centres))
         off = np.zeros(len(windows), bool)
         off[:-1] |= link_m > agree
         off[1:] |= link_m > agree
@@ -314,7 +314,6 @@ def place_route(street: StreetSegments, overview: OverviewSegments, cameras_xy: 
             windows[w] = sorted(windows[w] + _refine(fine, window_pts[w], tried, cfg, reach=2.0),
                                 key=lambda q: -q.score)
         pick, link_m = _chain(windows, links, cfg, np.diff(centres))
-    agree = agree_m(cfg, np.diff(centres))
     chosen = tuple(windows[w][h] for w, h in enumerate(pick))
     scores = np.array([p.score for p in chosen])
     top_share = float(np.mean([h == 0 for h in pick]))
