@@ -58,6 +58,8 @@ class ConstrainedBA(Stage):
             "ceres", description="ceres: pycolmap's Ceres bundle adjuster with pose priors; scipy: least_squares.")
         max_iterations: int = Field(100, ge=1, description="Solver iteration cap (scipy: function evaluations).")
         function_tolerance: float = Field(1e-6, gt=0, description="Relative cost decrease that stops the solver (pycolmap's default of 0 would run to the cap).")
+        trust_region: Literal["dogleg", "levenberg_marquardt"] = Field(
+            "levenberg_marquardt", description="Ceres trust-region strategy of the solve (ceres backend).")
         threads: int = Field(
             1, ge=-1, description="Ceres threads (-1 = all cores; more than one is not bit-reproducible)")
         max_reproj_error_px: float | None = Field(
@@ -107,7 +109,8 @@ class ConstrainedBA(Stage):
                                    before, before, 0)
         C_prior = -np.einsum("cba,cb->ca", R_w, t_w)
         bp = BAParams(lambda_=p.lambda_, loss=p.loss, loss_scale_px=p.loss_scale_px, max_iterations=p.max_iterations,
-                      function_tolerance=p.function_tolerance, threads=p.threads)
+                      function_tolerance=p.function_tolerance, threads=p.threads,
+                      trust_region=p.trust_region)
         backend = p.backend
         if backend == "ceres" and degenerate_centres(C_prior):
             obs.warn("camera centres are exactly collinear/coplanar (pycolmap's prior alignment would "

@@ -30,6 +30,7 @@ class BAParams:
     max_iterations: int = 100
     function_tolerance: float = 1e-6
     threads: int = 1
+    trust_region: str = "levenberg_marquardt"
 
 
 @dataclass(frozen=True)
@@ -116,6 +117,8 @@ def adjust_ceres(model: SparseModel, R0: np.ndarray, t0: np.ndarray, X0: np.ndar
     so.function_tolerance = p.function_tolerance
     so.max_num_iterations = p.max_iterations
     so.num_threads = p.threads
+    strategy = type(so.trust_region_strategy_type)  # pyceres' enum; pycolmap does not re-export it
+    so.trust_region_strategy_type = getattr(strategy, p.trust_region.upper())
     cfg = pycolmap.BundleAdjustmentConfig()
     observed = np.flatnonzero(np.bincount(img[np.isin(pt, use)], minlength=len(model.image_names)) > 0)
     for k in observed:

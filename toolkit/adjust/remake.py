@@ -25,16 +25,17 @@ from toolkit.warp.passes import median_observers
 
 def capture_cameras(points: np.ndarray, model: SparseModel, max_gap_m: float = 10.0) -> np.ndarray:
     """(N,) index of the camera each point was captured from (the rule of the module doc)."""
-    out = np.empty(len(points), np.int64)
-    _, out[:] = cKDTree(model.centres).query(points, workers=query_workers(len(points)))
+    out = np.full(len(points), -1, np.int64)
     observer = median_observers(model)
     seen = np.flatnonzero(observer >= 0)
-    if len(seen) == 0:
-        return out
-    dist, nn = cKDTree(np.asarray(model.points3d, np.float64)[seen]).query(
-        points, distance_upper_bound=max_gap_m, workers=query_workers(len(points)))
-    hit = np.isfinite(dist)
-    out[hit] = observer[seen][nn[hit]]
+    if len(seen):
+        dist, nn = cKDTree(np.asarray(model.points3d, np.float64)[seen]).query(
+            points, distance_upper_bound=max_gap_m, workers=query_workers(len(points)))
+        hit = np.isfinite(dist)
+        out[hit] = observer[seen][nn[hit]]
+    miss = np.flatnonzero(out < 0)
+    if len(miss):
+        _, out[miss] = cKDTree(model.centres).query(points[miss], workers=query_workers(len(miss)))
     return out
 
 
