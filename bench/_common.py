@@ -41,6 +41,22 @@ def city_scene(city: Path = DEN_HAAG, seed: int = 0) -> Path:
     return root
 
 
+def truth_centres(path: Path) -> np.ndarray:
+    """Camera centres (C,3) of truth/cameras.txt (COLMAP images.txt layout), in image-id order."""
+    import numpy as np
+
+    from toolkit.io.colmap import qvec_to_rotmat
+
+    rows = []
+    lines = [ln for ln in path.read_text().splitlines() if ln and not ln.startswith("#")]
+    for ln in lines[::2]:
+        v = ln.split()
+        R = qvec_to_rotmat(np.array(v[1:5], float))
+        rows.append((int(v[0]), -R.T @ np.array(v[5:8], float)))
+    rows.sort(key=lambda r: r[0])
+    return np.array([c for _, c in rows])
+
+
 def kabsch_error(src, dst):
     """Per-point 3D error of the best rigid fit (Kabsch, no scale) of ``src`` onto ``dst`` (N,3): the
     bar any non-rigid registration must beat."""

@@ -26,7 +26,7 @@ import laspy
 import numpy as np
 from scipy.spatial import cKDTree
 
-from _common import REPO  # noqa: F401  (puts the repository on sys.path)
+from _common import REPO, truth_centres  # noqa: F401  (REPO puts the repository on sys.path)
 
 BAD_SEGMENT_M = 1.0
 OVER_M = 1.5
@@ -43,20 +43,6 @@ def scene_of(out: Path, given: str | None) -> Path:
     if not hits:
         raise SystemExit(f"{out}: which scene? pass --scene")
     return cities / hits[-1]
-
-
-def truth_centres(path: Path) -> np.ndarray:
-    """Camera centres (C,3) of truth/cameras.txt (COLMAP images.txt layout), in image-id order."""
-    from toolkit.io.colmap import qvec_to_rotmat
-
-    rows = []
-    lines = [ln for ln in path.read_text().splitlines() if ln and not ln.startswith("#")]
-    for ln in lines[::2]:
-        v = ln.split()
-        R = qvec_to_rotmat(np.array(v[1:5], float))
-        rows.append((int(v[0]), -R.T @ np.array(v[5:8], float)))
-    rows.sort(key=lambda r: r[0])
-    return np.array([c for _, c in rows])
 
 
 def route_positions(truth_xy: np.ndarray, scene: Path) -> np.ndarray:

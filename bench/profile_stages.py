@@ -8,7 +8,13 @@ CPU seconds (user + system, all threads) are given beside wall seconds: on a sha
 drift less with the load. Steps run one at a time here (``overlap=False``), so each one's CPU
 seconds are its own; a plain run overlaps the over-view and street steps.
 
-usage: python bench/profile_stages.py [preset | scene dir] [recipe]   (default: campus dsm.yaml)
+Each stage's seconds are also given as a multiple of one Open3D normals pass over the same street
+cloud (KNN 20, timed before and after the run and averaged: the per-point floor the speed targets
+are stated in). With truth/cameras.txt, the adjusted camera centres' error (median, p95, m) is
+printed too: a faster bundle adjustment must not place the cameras worse.
+
+usage: python bench/profile_stages.py [preset | scene dir | scene.yaml] [recipe]   (default: campus dsm.yaml)
+       (a matrix scene without GPS: data/cities/<scene>/scene-nogps.yaml)
 """
 
 from __future__ import annotations
@@ -18,7 +24,7 @@ import sys
 import time
 from pathlib import Path
 
-from _common import REPO, scene
+from _common import REPO, normals_pass_seconds, scene, truth_centres
 
 from toolkit.observe import NullObserver
 
@@ -83,15 +89,45 @@ def profile(root: Path, recipe: str, out: Path):
     return seconds, cpu, rows
 
 
+def normals_seconds(root: Path) -> float:
+    from toolkit.scene import load_points, load_scene
+
+    return normals_pass_seconds(load_points(load_scene(root), "street_cloud"))
+
+
+def camera_errors(root: Path, out: Path) -> tuple[float, float] | None:
+    """Median and p95 (m) of the adjusted camera centres (out/sparse) against truth/cameras.txt."""
+    import numpy as np
+
+    from toolkit.io.colmap import read_model
+    from toolkit.scene import load_scene
+
+    truth = load_scene(root).files.truth_cameras
+    if truth is None or not (out / "sparse").is_dir():
+        return None
+    adjusted = read_model(out / "sparse")
+    e = np.linalg.norm(adjusted.centres[np.argsort(adjusted.image_ids)] - truth_centres(truth), axis=1)
+    return float(np.median(e)), float(np.percentile(e, 95))
+
+
 def main(preset: str = "campus", recipe: str = "dsm.yaml") -> None:
-    root = Path(preset) if Path(preset, "scene.yaml").is_file() else scene(preset)
-    seconds, cpu, rows = profile(root, recipe, REPO / "out" / f"bench-profile-{root.name}")
+    root = Path(preset) if Path(preset, "scene.yaml").is_file() or Path(preset).suffix == ".yaml" else scene(preset)
+    name = root.name if root.is_dir() else f"{root.parent.name}/{root.name}"
+    out = REPO / "out" / f"bench-profile-{name.replace('/', '-')}"
+    before = normals_seconds(root)
+    seconds, cpu, rows = profile(root, recipe, out)
+    normals = (before + normals_seconds(root)) / 2
     # ru_maxrss only sees the high-water mark since the last reset: the run's peak is the stages' max
-    print(f"{recipe} on {root.name}: {seconds:.1f} s total ({cpu:.1f} s CPU), "
-          f"peak RSS {max(r[4] for r in rows):.0f} MB (highest stage peak)")
-    print(f"{'step':10s} {'seconds':>9s} {'share':>7s} {'CPU s':>8s} {'CPU share':>10s} {'rss in MB':>10s} {'peak MB':>9s}")
+    print(f"{recipe} on {name}: {seconds:.1f} s total ({cpu:.1f} s CPU, {seconds / normals:.2f}x one normals pass of "
+          f"{normals:.2f} s), peak RSS {max(r[4] for r in rows):.0f} MB (highest stage peak)")
+    print(f"{'step':10s} {'seconds':>9s} {'share':>7s} {'÷ normals':>10s} {'CPU s':>8s} {'CPU share':>10s} "
+          f"{'rss in MB':>10s} {'peak MB':>9s}")
     for step, s, c, rss_in, peak in sorted(rows, key=lambda r: -r[1]):
-        print(f"{step:10s} {s:9.2f} {100 * s / seconds:6.1f}% {c:8.2f} {100 * c / cpu:9.1f}% {rss_in:10.0f} {peak:9.0f}")
+        print(f"{step:10s} {s:9.2f} {100 * s / seconds:6.1f}% {s / normals:9.2f}x {c:8.2f} {100 * c / cpu:9.1f}% "
+              f"{rss_in:10.0f} {peak:9.0f}")
+    errors = camera_errors(root, out)
+    if errors is not None:
+        print(f"adjusted camera centres vs truth: median {errors[0]:.3f} m, p95 {errors[1]:.3f} m")
 
 
 if __name__ == "__main__":

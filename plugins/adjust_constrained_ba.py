@@ -23,7 +23,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from toolkit.adjust.ba import BAParams, adjust_ceres, adjust_scipy, degenerate_centres
+from toolkit.adjust.ba import BAParams, adjust_ceres, adjust_scipy, degenerate_centres, straight_track
 from toolkit.adjust.model import (
     bad_observations,
     place_unadjusted,
@@ -58,8 +58,11 @@ class ConstrainedBA(Stage):
             "ceres", description="ceres: pycolmap's Ceres bundle adjuster with pose priors; scipy: least_squares.")
         max_iterations: int = Field(100, ge=1, description="Solver iteration cap (scipy: function evaluations).")
         function_tolerance: float = Field(1e-6, gt=0, description="Relative cost decrease that stops the solver (pycolmap's default of 0 would run to the cap).")
-        trust_region: Literal["dogleg", "levenberg_marquardt"] = Field(
-            "levenberg_marquardt", description="Ceres trust-region strategy of the solve (ceres backend).")
+        trust_region: Literal["auto", "dogleg", "levenberg_marquardt"] = Field(
+            "auto", description="Ceres trust-region strategy (auto: dogleg, levenberg_marquardt on a straight track).")
+        straight_track_ratio: float = Field(
+            0.05, ge=0, description="Below this ratio of the camera centres' second to first singular value the "
+                                    "track counts as straight (trust_region auto)")
         threads: int = Field(
             1, ge=-1, description="Ceres threads (-1 = all cores; more than one is not bit-reproducible)")
         max_reproj_error_px: float | None = Field(
@@ -92,6 +95,13 @@ class ConstrainedBA(Stage):
         # free (toolkit.forked); with more Ceres threads it uses the cores itself
         return self.params.threads == 1 and forks()
 
+    def _trust_region(self, C_prior: np.ndarray) -> str:
+        # on a straight track position priors leave the roll about it unobserved: dogleg's long steps
+        # drift along it (degrees), Levenberg-Marquardt's damped ones stay near the warp's roll
+        if self.params.trust_region != "auto":
+            return self.params.trust_region
+        return "levenberg_marquardt" if straight_track(C_prior, self.params.straight_track_ratio) else "dogleg"
+
     def __call__(self, registration: Registration, scene: Scene, capture: StreetCapture, obs) -> AdjustedCameras:
         with single_threaded_blas():
             return self._run(registration, capture, obs)
@@ -110,7 +120,7 @@ class ConstrainedBA(Stage):
         C_prior = -np.einsum("cba,cb->ca", R_w, t_w)
         bp = BAParams(lambda_=p.lambda_, loss=p.loss, loss_scale_px=p.loss_scale_px, max_iterations=p.max_iterations,
                       function_tolerance=p.function_tolerance, threads=p.threads,
-                      trust_region=p.trust_region)
+                      trust_region=self._trust_region(C_prior))
         backend = p.backend
         if backend == "ceres" and degenerate_centres(C_prior):
             obs.warn("camera centres are exactly collinear/coplanar (pycolmap's prior alignment would "

@@ -11,7 +11,7 @@ from plugins.adjust_constrained_ba import ConstrainedBA
 from plugins.adjust_none import NoAdjust
 from tests.refine_warp_world import ba_problem
 from toolkit.capture import StreetCapture
-from toolkit.adjust.ba import degenerate_centres
+from toolkit.adjust.ba import degenerate_centres, straight_track
 from toolkit.adjust.model import project, residuals, rms_px, warp_points3d
 from toolkit.io.colmap import read_model, write_model
 from toolkit.observe import NullObserver
@@ -57,6 +57,30 @@ def test_constrained_ba_reaches_the_pixel_noise_and_improves_the_cameras(problem
     assert np.allclose(np.einsum("cab,cdb->cad", out.model.R, out.model.R), np.eye(3), atol=1e-9)
     # the adjusted 3D points are in the scene CRS, near the truth
     assert np.median(np.linalg.norm(out.model.points3d - truth["Xs"], axis=1)) < 0.3
+
+
+def test_both_trust_region_strategies_place_the_cameras_alike(problem):
+    model, reg, truth, scene = problem
+    lm = ConstrainedBA.from_config({"trust_region": "levenberg_marquardt"})(reg, scene, StreetCapture(scene), NullObserver())
+    dogleg = ConstrainedBA.from_config({"trust_region": "dogleg"})(reg, scene, StreetCapture(scene), NullObserver())
+    assert dogleg.rms_after_px <= 1.2 * NOISE_PX
+    # the same minimum up to the solver tolerance: flat along the track, so a few cm apart, equally good
+    assert np.abs(dogleg.model.centres - lm.model.centres).max() < 0.05
+    assert _centre_error(dogleg.model.R, dogleg.model.t, truth) < 1.1 * _centre_error(lm.model.R, lm.model.t, truth)
+
+
+def test_a_straight_track_is_solved_with_damped_steps(problem):
+    # the test track is a straight street: position priors leave the roll about it unobserved, and
+    # dogleg's long steps roll the whole model (points end farther from the truth than warped)
+    model, reg, truth, scene = problem
+    C = -np.einsum("cba,cb->ca", reg.R, reg.t)
+    assert straight_track(C, 0.05) and not straight_track(C, 0.0)
+    warped = np.median(np.linalg.norm(warp_points3d(model, reg.R, reg.t) - truth["Xs"], axis=1))
+    point_error = lambda out: np.median(np.linalg.norm(out.model.points3d - truth["Xs"], axis=1))
+    dogleg = ConstrainedBA.from_config({"trust_region": "dogleg"})(reg, scene, StreetCapture(scene), NullObserver())
+    auto = ConstrainedBA()(reg, scene, StreetCapture(scene), NullObserver())
+    assert point_error(dogleg) > warped
+    assert point_error(auto) < 0.6 * warped
 
 
 def test_scipy_backend_solves_the_same_problem(small_problem):

@@ -30,7 +30,7 @@ class BAParams:
     max_iterations: int = 100
     function_tolerance: float = 1e-6
     threads: int = 1
-    trust_region: str = "levenberg_marquardt"
+    trust_region: str = "dogleg"
 
 
 @dataclass(frozen=True)
@@ -48,6 +48,15 @@ def degenerate_centres(C: np.ndarray, rel: float = 1e-9) -> bool:
         return True
     s = np.linalg.svd(C - C.mean(axis=0), compute_uv=False)
     return bool(s[-1] <= rel * max(s[0], 1e-12))
+
+
+def straight_track(C: np.ndarray, ratio: float) -> bool:
+    """True when the centres lie nearly on a line: second over first singular value below ``ratio``.
+    Position priors then leave the rotation of the whole model about that line unobserved."""
+    if len(C) < 2:
+        return True
+    sv = np.linalg.svd(C - C.mean(axis=0), compute_uv=False)
+    return bool(sv[1] < ratio * sv[0])
 
 
 def _tracks(model: SparseModel):
