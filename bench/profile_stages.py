@@ -13,7 +13,8 @@ cloud (KNN 20, timed before and after the run and averaged: the per-point floor 
 are stated in). With truth/cameras.txt, the adjusted camera centres' error (median, p95, m) is
 printed too: a faster bundle adjustment must not place the cameras worse.
 
-usage: python bench/profile_stages.py [preset | scene dir | scene.yaml] [recipe]   (default: campus dsm.yaml)
+usage: python bench/profile_stages.py [preset | scene dir | scene.yaml] [recipe] [KEY=VALUE ...]
+       (default: campus dsm.yaml; KEY=VALUE: recipe overrides as the CLI's -s)
        (a matrix scene without GPS: data/cities/<scene>/scene-nogps.yaml)
 """
 
@@ -75,13 +76,13 @@ class MemoryObserver(NullObserver):
                   flush=True)
 
 
-def profile(root: Path, recipe: str, out: Path):
+def profile(root: Path, recipe: str, out: Path, overrides: tuple[str, ...] = ()):
     from toolkit.runner import run_recipe
 
     obs = MemoryObserver()
     t0, c0 = time.perf_counter(), _cpu()
     res = run_recipe(REPO / "recipes" / recipe, scene=root, out=out, overwrite=True, rerun=False, observer=obs,
-                     overlap=False)
+                     overlap=False, overrides=list(overrides))
     seconds, cpu = time.perf_counter() - t0, _cpu() - c0
     rows = [(step, s, obs.cpu[step], obs.rss_in[step], obs.peak[step]) for step, s in res.timings.items()]
     rows.append(("outputs", seconds - sum(res.timings.values()), cpu - sum(obs.cpu.values()),
@@ -110,12 +111,12 @@ def camera_errors(root: Path, out: Path) -> tuple[float, float] | None:
     return float(np.median(e)), float(np.percentile(e, 95))
 
 
-def main(preset: str = "campus", recipe: str = "dsm.yaml") -> None:
+def main(preset: str = "campus", recipe: str = "dsm.yaml", *overrides: str) -> None:
     root = Path(preset) if Path(preset, "scene.yaml").is_file() or Path(preset).suffix == ".yaml" else scene(preset)
     name = root.name if root.is_dir() else f"{root.parent.name}/{root.name}"
     out = REPO / "out" / f"bench-profile-{name.replace('/', '-')}"
     before = normals_seconds(root)
-    seconds, cpu, rows = profile(root, recipe, out)
+    seconds, cpu, rows = profile(root, recipe, out, overrides)
     normals = (before + normals_seconds(root)) / 2
     # ru_maxrss only sees the high-water mark since the last reset: the run's peak is the stages' max
     print(f"{recipe} on {name}: {seconds:.1f} s total ({cpu:.1f} s CPU, {seconds / normals:.2f}x one normals pass of "
