@@ -42,11 +42,16 @@ class BAResult:
     backend: str
 
 
+def _spread(C: np.ndarray) -> np.ndarray:
+    """Singular values of the centred camera centres, largest first (their spread along each axis)."""
+    return np.linalg.svd(C - C.mean(axis=0), compute_uv=False)
+
+
 def degenerate_centres(C: np.ndarray, rel: float = 1e-9) -> bool:
     """True when the centres are (numerically exactly) collinear or coplanar."""
     if len(C) < 3:
         return True
-    s = np.linalg.svd(C - C.mean(axis=0), compute_uv=False)
+    s = _spread(C)
     return bool(s[-1] <= rel * max(s[0], 1e-12))
 
 
@@ -55,8 +60,8 @@ def straight_track(C: np.ndarray, ratio: float) -> bool:
     Position priors then leave the rotation of the whole model about that line unobserved."""
     if len(C) < 2:
         return True
-    sv = np.linalg.svd(C - C.mean(axis=0), compute_uv=False)
-    return bool(sv[1] < ratio * sv[0])
+    s = _spread(C)
+    return bool(s[1] < ratio * s[0])
 
 
 def _tracks(model: SparseModel):
