@@ -69,6 +69,17 @@ def kabsch_error(src, dst):
     return np.linalg.norm((src - a) @ R.T + b - dst, axis=1)
 
 
+def similarity_scale(src, dst) -> float:
+    """The scale s of the best similarity src ≈ s·R·dst + t (Umeyama): for a street cloud (src) and
+    its truth in metres (dst), the frame's units per metre, the route's mean scale drift included."""
+    import numpy as np
+
+    a, b = src - src.mean(0), dst - dst.mean(0)
+    U, S, Vt = np.linalg.svd(b.T @ a)
+    d = np.sign(np.linalg.det(U @ Vt))
+    return float((S[0] + S[1] + d * S[2]) / (b ** 2).sum())
+
+
 def peak_rss_mb(children: bool = False) -> float:
     who = resource.RUSAGE_CHILDREN if children else resource.RUSAGE_SELF
     return resource.getrusage(who).ru_maxrss / 1024.0

@@ -172,9 +172,11 @@ class StreetScaleEntry(Entry):
     """The street frame's units per metre and where it came from (``toolkit.street_scale``)."""
 
     value: float | None = None
-    source: str | None = None  # "gps" | "assumed" | "scene" | "recipe"
+    source: str | None = None  # "gps" | "matching" | "assumed" | "scene" | "recipe"
     gps_estimate: float | None = None
     gps_pairs: int | None = None
+    matching_estimate: float | None = None
+    matching: dict[str, Any] | None = None  # the scan's figures (toolkit.street_scale.scale_from_matching)
 
 
 class SegmentScale(Entry):

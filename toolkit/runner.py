@@ -21,11 +21,13 @@ from toolkit.overlap import BufferedObserver, Prefetcher, independent
 from toolkit.recipe import Recipe, StepSpec, load_recipe
 from toolkit.registry import Registry, default_registry
 from toolkit.scene import FIELD_TO_MANIFEST, load_scene
-from toolkit.street_scale import check_assumed_scale, resolve_street_scale
+from toolkit.street_scale import resolve_street_scale, scale_from_matching
 from toolkit.stage import KIND_INPUTS, KIND_OPTIONAL, KIND_OUTPUT, KIND_OUTPUT_TYPE, RUN_INPUTS, Stage
 from toolkit.status import Assessment, assess
 from toolkit.threads import single_threaded_blas, thread_budget
-from toolkit.types import RunOutputs, Scene
+from toolkit.types import RunOutputs, Scene, StreetScale
+
+log = logging.getLogger("crossview.runner")
 
 
 @dataclass(frozen=True)
@@ -131,19 +133,78 @@ def _run_step(spec: StepSpec, stage: Stage, outputs: RunOutputs, obs: Any,
     return out, seconds
 
 
+class _Rescale(Exception):
+    """The matching found another street scale: the street step runs again at it."""
+
+    def __init__(self, scale: StreetScale, made: RunOutputs, seconds: float) -> None:
+        super().__init__(f"street scale {scale.value:g}")
+        self.scale, self.made, self.seconds = scale, made, seconds
+
+
 def execute(plan: Plan, obs: Observer | None = None,
             overlap: bool | None = None) -> tuple[RunOutputs, dict[str, float]]:
-    """Run the stages in recipe order; returns what they made (with the scene and its capture) and
-    seconds per step.
+    """Run the stages in recipe order; returns what they made (with the scene and its capture, whose
+    street scale is the one the run settled on) and seconds per step.
 
     ``overlap`` (default: when the thread budget has two threads, ``toolkit.threads``): a step and
     the next one run side by side when the next needs nothing from it, and a stage's ``prefetch``
     starts in a second thread as soon as its inputs are made (``toolkit.overlap``); step seconds
     then add up to more than the run's wall time.
+
+    Without GPS (street scale ``matching``), the street segments are checked against the over-view
+    right after the street step (``toolkit.street_scale.scale_from_matching``); when they fit at
+    another scale, the steps run again from the street step at it (the over-view is kept). The
+    seconds of that check and of the street passes it discarded are ``scale``.
     """
     obs = obs or NullObserver()
     overlap = thread_budget() >= 2 if overlap is None else overlap
+    spent, made = 0.0, None
+    while True:
+        try:
+            outputs, timings = _execute(plan, obs, overlap, made)
+        except _Rescale as r:
+            plan = _with_scale(plan, r.scale)
+            spent += r.seconds
+            made = r.made
+            log.info("street scale %.4g (frame units per metre) from the matching: the street step runs again at it",
+                     r.scale.value)
+            continue
+        if spent or "scale" in timings:
+            timings["scale"] = timings.get("scale", 0.0) + spent
+        return outputs, timings
+
+
+def _with_scale(plan: Plan, scale: StreetScale) -> Plan:
+    scene = replace(plan.scene, street_scale=scale)
+    return replace(plan, scene=scene, capture=StreetCapture(scene))
+
+
+def _settle_scale(plan: Plan, outputs: RunOutputs, obs) -> tuple[RunOutputs, float]:
+    """After the street step: the matching's check of an unsettled street scale. Returns the outputs
+    with the settled scale and the check's seconds, or raises _Rescale."""
+    t0 = time.perf_counter()
+    scale = plan.capture.scale
+    unary = next((st for sp, st in plan.stages if sp.name == "unary"), None)
+    cfg = getattr(getattr(unary, "params", None), "route_prior", None)
+    if outputs.overview is None or outputs.street is None or len(outputs.street) == 0 or cfg is None:
+        new = replace(scale, settled=True)
+    else:
+        new = scale_from_matching(scale, outputs.street, outputs.overview, plan.capture, cfg,
+                                  workers=thread_budget())
+    seconds = time.perf_counter() - t0
+    if not new.settled:
+        kept = RunOutputs(scene=plan.scene, capture=plan.capture, overview=outputs.overview)
+        raise _Rescale(new, kept, seconds)
+    scene = replace(outputs.scene, street_scale=new)
+    return replace(outputs, scene=scene, capture=StreetCapture(scene)), seconds
+
+
+def _execute(plan: Plan, obs: Observer, overlap: bool,
+             made: RunOutputs | None) -> tuple[RunOutputs, dict[str, float]]:
+    """One pass of ``execute``; steps whose output ``made`` holds are not run again."""
     outputs = RunOutputs(scene=plan.scene, capture=plan.capture)
+    if made is not None and made.overview is not None:
+        outputs = replace(outputs, overview=made.overview)
     timings: dict[str, float] = {}
     kinds = {spec.name for spec, _ in plan.stages}
     steps = list(plan.stages)
@@ -159,6 +220,9 @@ def execute(plan: Plan, obs: Observer | None = None,
         i = 0
         while i < len(steps):
             spec, stage = steps[i]
+            if getattr(outputs, KIND_OUTPUT[spec.name]) is not None:  # kept from an earlier pass
+                i += 1
+                continue
             if overlap:
                 early.start_beside(outputs, i - 1)
             if overlap and i + 1 < len(steps) and independent(spec, steps[i + 1][0], kinds):
@@ -177,11 +241,12 @@ def execute(plan: Plan, obs: Observer | None = None,
             for s, (out, seconds) in pairs:
                 outputs = replace(outputs, **{KIND_OUTPUT[s.name]: out})
                 timings[s.name] = seconds
-                if s.name == "street":
-                    check_assumed_scale(out, plan.capture)
                 for name in stage_of[s.name].remakes():  # e.g. the adjust step's re-made registration
                     if getattr(out, name, None) is not None:
                         outputs = replace(outputs, **{name: getattr(out, name)})
+            if any(s.name == "street" for s, _ in pairs) and not plan.capture.scale.settled:
+                outputs, timings["scale"] = _settle_scale(plan, outputs, obs)
+                plan = replace(plan, scene=outputs.scene, capture=outputs.capture)
             if nothing_registered(outputs, steps[i:]):
                 obs.warn("no street segment was registered: the steps after refine are skipped and the run "
                          "is assessed as it stands")
@@ -265,6 +330,7 @@ def run_recipe(recipe_path: str | Path, scene: str | Path | None = None, out: st
             obs = MultiObserver(obs, rerun_obs)
         with collected_log() as logged:
             outputs, timings = execute(plan, obs, overlap)
+        plan = replace(plan, scene=outputs.scene, capture=outputs.capture)  # the street scale settled on
         if rerun_obs is not None:
             rerun_obs.close()
             rerun_obs = None

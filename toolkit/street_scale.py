@@ -1,13 +1,23 @@
 """The street frame's scale: street-frame units per metre (a monocular SfM model has no metric scale).
 
 ``street_scale`` in scene.yaml or in a recipe (the recipe wins) is ``auto`` (the default) or a
-number in [0.05, 20] (1.0: the frame is metric). ``auto`` estimates it from ``street/gps.csv`` when
-the scene has one and its fixes match the COLMAP images: the median, over pairs of fixes 50-500 m
-apart, of the camera-centre distance over the fix distance (robust to wrong fixes; the route's mean
-scale drift is part of it); an estimate within 2 % of 1 is taken as metric (1), since a route's
-scale drift alone moves it that much and the per-segment scale (refine) takes it up. Without GPS, ``auto`` assumes 1 and says so in metrics.json. The
-pipeline reads the street cloud and the COLMAP model divided by the scale, so every stage works in
-metres; the stored warp takes input-frame points (``crossview apply``).
+number in [0.05, 20] (1.0: the frame is metric). ``auto``:
+
+- with ``street/gps.csv`` (fixes matching the COLMAP images): the median, over pairs of fixes
+  50-500 m apart, of the camera-centre distance over the fix distance (``scale_from_gps``);
+- without GPS, with street/sparse: from the matching (``first_guess``, ``scale_from_matching``). The
+  street step first runs at 1 when the cameras sit 1-4 frame units above the COLMAP points under
+  them, else at the scale that puts them 2 m up; then the route's façades are placed on the
+  over-view outlines at every scale that puts the cameras 1-4 m above the street ground
+  (``toolkit.matching.route_scale``), and the steps run again from the street step when the best
+  one is another scale (at most MAX_PASSES street passes);
+- otherwise 1 (``assumed``).
+
+An estimate within 2 % of 1 is taken as metric (1), and within 2 % of the scale the street step ran
+at is kept: a route's scale drift alone moves it that much, and the per-segment scale (refine)
+takes it up. The pipeline reads the street cloud and the COLMAP model divided by the scale, so every
+stage works in metres; the stored warp takes input-frame points (``crossview apply``).
+See docs/scale_and_heights.md.
 """
 
 from __future__ import annotations
@@ -26,6 +36,13 @@ SCALE_RANGE = (0.05, 20.0)
 METRIC_TOLERANCE = 0.02   # a GPS estimate this close to 1 is taken as metric (within the scale drift)
 PAIR_RANGE_M = (50.0, 500.0)
 MIN_PAIRS = 20
+# Without GPS: the heights a street capture's cameras are searched at above the street ground
+# (handheld ~1.5 m, car roof ~2.3 m, a mast ~3.5 m), and the one a first guess puts them at.
+CAMERA_HEIGHT_M = (1.0, 4.0)
+NOMINAL_CAMERA_HEIGHT_M = 2.0
+UNDER_POINTS = 30     # COLMAP points nearest each camera horizontally, for its height
+MAX_PASSES = 3        # street passes the matching may ask for
+RESCAN_REACH = 0.1    # a later pass scans the factors within 1 ± this of its scale
 
 
 def parse_street_scale(value: Any, where: str) -> float | None:
@@ -50,7 +67,83 @@ def resolve_street_scale(scene: Scene, recipe_value: Any = None, recipe_path: Pa
     if given is not None:
         return replace(scene, street_scale=StreetScale(given, source))
     found = scale_from_gps(scene) if scene.has("gps") and scene.has("sparse") else None
+    if found is None and scene.has("sparse"):
+        found = first_guess(scene)
     return replace(scene, street_scale=found or StreetScale(1.0, "assumed"))
+
+
+def sparse_camera_height(model) -> float | None:
+    """Median height of the cameras above the COLMAP points under them, in the model's own units
+    (scale-free: 'up' is the cameras' mean image-up axis, 'under' the points nearest each camera
+    horizontally); None without points."""
+    from scipy.spatial import cKDTree
+
+    if len(model.points3d) < MIN_PAIRS or len(model.R) == 0:
+        return None
+    up = -np.asarray(model.R, np.float64)[:, 1, :].mean(axis=0)  # COLMAP's image y points down
+    up /= np.linalg.norm(up)
+    a = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    plane = np.stack([a, np.cross(up, a)], axis=1)
+    pts, cams = np.asarray(model.points3d, np.float64), model.centres
+    _, nn = cKDTree(pts @ plane).query(cams @ plane, k=min(UNDER_POINTS, len(pts)))
+    below = (cams @ up)[:, None] - (pts @ up)[nn]
+    per_camera = np.nanmedian(np.where(below > 0, below, np.nan), axis=1)
+    per_camera = per_camera[np.isfinite(per_camera)]
+    return float(np.median(per_camera)) if len(per_camera) else None
+
+
+def first_guess(scene: Scene) -> StreetScale | None:
+    """Without GPS: the scale the street step first runs at, settled later by the matching
+    (``scale_from_matching``): 1 when the cameras sit at a street capture's height at 1, else the
+    one that puts them at NOMINAL_CAMERA_HEIGHT_M. None without points in the COLMAP model."""
+    from toolkit.scene import read_sparse_raw
+
+    h = sparse_camera_height(read_sparse_raw(scene))
+    if h is None:
+        return None
+    lo, hi = CAMERA_HEIGHT_M
+    value = 1.0 if lo <= h <= hi else float(np.clip(h / NOMINAL_CAMERA_HEIGHT_M, *SCALE_RANGE))
+    return StreetScale(value, "matching", matching={"camera_height_frame": round(h, 6), "first_guess": round(value, 6),
+                                                    "passes": 0}, settled=False)
+
+
+def scale_from_matching(scale: StreetScale, street, overview, capture: StreetCapture, cfg, workers: int = 1,
+                        search=None) -> StreetScale:
+    """One pass of the scan over street scales (``toolkit.matching.route_scale``) on the street
+    segments found at ``scale``: the same value, settled, when the scan's factor is within
+    METRIC_TOLERANCE of it (the per-segment scale of refine takes the rest up), else the factor's
+    scale, unsettled, for the street step to run again at (settled after MAX_PASSES).
+    ``cfg``: the route placement's config (the unary stage's)."""
+    from toolkit.matching.route_prior import capture_order
+    from toolkit.matching.route_scale import ScaleSearchConfig, scan_scale
+
+    search = search or ScaleSearchConfig()
+    figures = dict(scale.matching or {})
+    passes = int(figures.get("passes", 0)) + 1
+    model = capture.require_sparse("the street scale from the matching")
+    cams = street.level(model.centres[capture_order(model.image_names)])[:, :2]
+    if passes == 1:
+        h = camera_height(street, capture)
+        if h is None or h <= 0:
+            return replace(scale, settled=True, matching={**figures, "passes": passes, "reason": "no street ground"})
+        lo, hi = CAMERA_HEIGHT_M[0] / h, CAMERA_HEIGHT_M[1] / h   # the factors that put the cameras there
+        scan = scan_scale(street, overview, cams, lo, hi, cfg, search, coarse=True, workers=workers)
+    else:
+        r = 1.0 + RESCAN_REACH
+        scan = scan_scale(street, overview, cams, 1.0 / r, r, cfg, search, coarse=False, workers=workers)
+    estimate = scale.value / scan.factor
+    figures.update({"passes": passes, f"pass_{passes}": {"at": round(scale.value, 6), **scan.figures()}})
+    if "margin" not in figures or scan.margin is not None:
+        figures["margin"] = scan.figures()["margin"]
+    value = 1.0 if abs(estimate - 1.0) <= METRIC_TOLERANCE else estimate
+    lo_s, hi_s = SCALE_RANGE
+    if not lo_s <= value <= hi_s:
+        raise SceneError(f"{capture.sparse_path}: the street frame's scale found by the matching ({value:.4g}) is "
+                         f"outside [{lo_s:g}, {hi_s:g}]: set street_scale, or give street/gps.csv")
+    if abs(value / scale.value - 1.0) <= METRIC_TOLERANCE or passes >= MAX_PASSES:
+        return replace(scale, estimate=estimate, matching=figures, settled=True)
+    return StreetScale(value, "matching", estimate=estimate, matching=figures, settled=False)
 
 
 def scale_from_gps(scene: Scene) -> StreetScale | None:
@@ -108,16 +201,3 @@ def camera_height(street, capture: StreetCapture) -> float | None:
     cams = street.level(centres)
     _, nn = cKDTree(np.asarray(street.centroids, np.float64)[known]).query(cams[:, :2])
     return float(np.median(cams[:, 2] - ground[known][nn]))
-
-
-def check_assumed_scale(street, capture: StreetCapture, lo_m: float = 0.8, hi_m: float = 6.0) -> None:
-    """With the scale assumed (no GPS, none given): a SceneError when the cameras sit implausibly
-    high or low above the street ground (``camera_height``): the frame is then not metric, and
-    matching it would fail slowly (campus at 10x: over 10 minutes in the data term)."""
-    if capture.scale.source != "assumed" or capture.sparse_path is None or street is None or len(street) == 0:
-        return
-    height = camera_height(street, capture)
-    if height is not None and not lo_m <= height <= hi_m:
-        raise SceneError(f"{capture.sparse_path}: the cameras sit {height:.2f} frame units above the street "
-                         f"ground ({lo_m:g}-{hi_m:g} m expected of a street capture): the street frame is not "
-                         f"metric; set street_scale (frame units per metre) or give street/gps.csv")

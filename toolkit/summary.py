@@ -46,9 +46,11 @@ def print_summary(res, console: Console | None = None) -> None:
         _status_rows(table, assessment)
     scale = getattr(getattr(res, "scene", None), "street_scale", None)
     if scale is not None:
-        how = {"gps": "estimated from GPS", "assumed": "assumed (no GPS; set street_scale when not metric)",
+        how = {"gps": "estimated from GPS", "assumed": "assumed (no GPS, no COLMAP model; set street_scale when "
+               "not metric)", "matching": "from the façades against the over-view (no GPS)",
                "scene": "from scene.yaml", "recipe": "from the recipe"}[scale.source]
-        table.add_row("street scale (frame units per metre)", f"{scale.value:.4f} {how}")
+        est = f", estimate {scale.estimate:.4f}" if scale.estimate is not None and scale.estimate != scale.value else ""
+        table.add_row("street scale (frame units per metre)", f"{scale.value:.4f}{est} {how}")
     from toolkit.outputs import height_kind
 
     if res.scene is not None and height_kind(res.scene, res.results.overview) == "relative":

@@ -136,19 +136,27 @@ class SceneFiles:
 
 @dataclass(frozen=True)
 class StreetScale:
-    """value: street-frame units per metre; source: 'scene', 'recipe', 'gps' or 'assumed';
-    pairs: fix pairs behind a GPS estimate."""
+    """value: street-frame units per metre the run works at; source: 'scene', 'recipe', 'gps',
+    'matching' (no GPS: the route's façades against the over-view, ``toolkit.street_scale``) or
+    'assumed' (1: no GPS, no COLMAP model); pairs: fix pairs behind a GPS estimate.
+    matching: the scan's figures (JSON-able); settled: False while the matching is still to check
+    value (the runner's street passes)."""
 
     value: float
     source: str
     pairs: int = 0
-    estimate: float | None = None   # the GPS estimate (value is 1 when it is within 2 % of 1)
+    estimate: float | None = None   # the GPS or matching estimate (value is 1 when it is within 2 % of 1)
+    matching: dict[str, Any] | None = None
+    settled: bool = True
 
     def as_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {"value": round(self.value, 6), "source": self.source}
         if self.source == "gps":
             out["gps_estimate"] = round(float(self.estimate), 6)
             out["gps_pairs"] = self.pairs
+        if self.source == "matching":
+            out["matching_estimate"] = None if self.estimate is None else round(float(self.estimate), 6)
+            out["matching"] = self.matching
         return out
 
 

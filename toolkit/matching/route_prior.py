@@ -97,6 +97,14 @@ class RoutePlacement:
                 "links": len(self.link_m),
                 "best_alone_share": round(self.top_share, 4)}
 
+    def chain_value(self, link_cost: float) -> float:
+        """The chain's objective per window: (Σ score − link_cost·Σ min(link / agree, 1)) / windows
+        (0 without a window): how well one rigid placement per window fits, links included."""
+        if not len(self.window_scores):
+            return 0.0
+        broken = np.minimum(self.link_m / self.link_agree_m, 1.0).sum() if self.link_agree_m is not None else 0.0
+        return float((self.window_scores.sum() - link_cost * broken) / len(self.window_scores))
+
     def describe(self) -> str:
         scores = " ".join(f"{v:.2f}" for v in self.window_scores)
         links = " ".join(f"{v:.1f}" for v in self.link_m)
@@ -266,9 +274,32 @@ def _chain(windows: list[list[Placement]], links: list[np.ndarray], cfg: RoutePr
     return pick, link_m
 
 
+@dataclass(frozen=True)
+class RouteMaps:
+    """The over-view's outer outlines as the placement search reads them: the coarse closeness map,
+    its spectrum at the padded FFT ``shape``, and the fine map the placements are re-scored on.
+    They depend on the over-view and the config only (``route_maps``), so a search over street
+    scales builds them once."""
+
+    coarse: OutlineMap
+    spectrum: np.ndarray
+    shape: tuple[int, int]
+    fine: OutlineMap
+
+
+def route_maps(overview: OverviewSegments, cfg: RoutePriorConfig) -> RouteMaps:
+    omap = outer_outline_map(overview, cfg.cell_m, cfg.tolerance_m, margin_m=2 * cfg.tolerance_m)
+    fine = outer_outline_map(overview, cfg.fine_cell_m, cfg.fine_tolerance_m, margin_m=2 * cfg.tolerance_m)
+    pad = int(np.ceil(1.5 * cfg.window_m / cfg.cell_m)) + 2
+    shape = (sfft.next_fast_len(omap.close.shape[0] + pad, real=True),
+             sfft.next_fast_len(omap.close.shape[1] + pad, real=True))
+    return RouteMaps(omap, sfft.rfft2(omap.close, s=shape).astype(np.complex64), shape, fine)
+
+
 def place_route(street: StreetSegments, overview: OverviewSegments, cameras_xy: np.ndarray,
-                cfg: RoutePriorConfig) -> RoutePlacement:
-    """The placement of the route (levelled street xy → scene xy) and the prior it gives each segment."""
+                cfg: RoutePriorConfig, maps: RouteMaps | None = None) -> RoutePlacement:
+    """The placement of the route (levelled street xy → scene xy) and the prior it gives each segment.
+    ``maps``: ``route_maps(overview, cfg)`` when already made."""
     arc = route_arclength(cameras_xy)
     pts, seg = _facade_cells(street, cfg.cell_m / 2)
     from scipy.spatial import cKDTree
@@ -276,19 +307,15 @@ def place_route(street: StreetSegments, overview: OverviewSegments, cameras_xy: 
     _, nearest = cKDTree(cameras_xy).query(pts)
     s_pt = arc[nearest]
     starts = np.arange(0.0, max(arc[-1] - cfg.window_m / 2, 0.0) + 1e-9, cfg.window_m / 2)
-    omap = outer_outline_map(overview, cfg.cell_m, cfg.tolerance_m, margin_m=2 * cfg.tolerance_m)
-    fine = outer_outline_map(overview, cfg.fine_cell_m, cfg.fine_tolerance_m, margin_m=2 * cfg.tolerance_m)
-    pad = int(np.ceil(1.5 * cfg.window_m / cfg.cell_m)) + 2
-    shape = (sfft.next_fast_len(omap.close.shape[0] + pad, real=True),
-             sfft.next_fast_len(omap.close.shape[1] + pad, real=True))
-    spectrum = sfft.rfft2(omap.close, s=shape).astype(np.complex64)
+    maps = maps or route_maps(overview, cfg)
+    omap, fine = maps.coarse, maps.fine
     thetas = np.deg2rad(np.arange(0.0, 360.0, cfg.rotation_step_deg))
     windows, centres, window_pts = [], [], []
     for w0 in starts:
         sel = (s_pt >= w0) & (s_pt < w0 + cfg.window_m)
         if sel.sum() < 30:  # a park or an open square: the neighbours carry it
             continue
-        found = _window_placements(omap, spectrum, shape, pts[sel], thetas, cfg.candidates_per_window)
+        found = _window_placements(omap, maps.spectrum, maps.shape, pts[sel], thetas, cfg.candidates_per_window)
         found = _refine(fine, pts[sel], found, cfg)[:cfg.placements_per_window]
         if found:
             windows.append(found)

@@ -1,0 +1,176 @@
+"""The street frame's scale from its façades and the over-view outlines alone (no GPS).
+
+A monocular SfM model has no metric scale. The route placement (``toolkit.matching.route_prior``)
+fits one rigid placement per window of route onto the over-view's outer outlines; at the wrong
+scale no rigid placement fits a whole window (a street's width, its corners and the gaps between
+its blocks are all off), so the chain's objective per window (``RoutePlacement.chain_value``)
+peaks at the true scale. ``scan_scale`` scans candidate factors g (levelled street xy × g = metres)
+over a range: a coarse scan on maps twice as coarse and tolerant (its peak is about twice as wide,
+so steps twice as long find it), then a fine scan around the best coarse peak on the route
+placement's own maps, and a parabola through the best fine value and its neighbours (in log g).
+
+The margin is the best other coarse peak's value over the best one's: near 1, two scales fit
+alike (a straight street alone does not fix its own length), and the run's status says so.
+See docs/street_scale.md.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from scipy.spatial import cKDTree
+
+from toolkit.matching.route_prior import (
+    RouteMaps,
+    RoutePriorConfig,
+    place_route,
+    route_arclength,
+    route_maps,
+)
+from toolkit.types import OverviewSegments, StreetSegments
+
+
+class ScaleSearchConfig(BaseModel):
+    """The scan over street scales (see toolkit.matching.route_scale)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    coarse_step: float = Field(0.04, gt=0, le=0.5, description="relative step of the coarse scan (fraction)")
+    fine_step: float = Field(0.015, gt=0, le=0.2, description="relative step of the fine scan (fraction)")
+    fine_reach: float = Field(0.075, gt=0, le=0.5, description="the fine scan covers the best coarse factor ± this (fraction)")
+    stretch_windows: float = Field(3.0, gt=0, description="length of route scanned, the stretch with the most façades (route placement windows)")
+    coarse_factor: float = Field(2.0, ge=1, description="the coarse scan's rotation step over the route placement's (factor)")
+    peak_apart: float = Field(0.15, gt=0, description="coarse peaks closer than this (relative) are one peak (fraction)")
+
+
+@dataclass(frozen=True)
+class ScaleScan:
+    """factor: the best g (levelled street xy × g = metres); value: its chain value per window;
+    margin: the best other coarse peak's value over the best one's (None: no other peak);
+    runner_up: that peak's factor; coarse, fine: (n, 2) arrays of (g, value) as scanned;
+    evaluations: placements computed."""
+
+    factor: float
+    value: float
+    margin: float | None
+    runner_up: float | None
+    coarse: np.ndarray
+    fine: np.ndarray
+    evaluations: int
+
+    def figures(self) -> dict:
+        return {"factor": round(self.factor, 5), "value": round(self.value, 4),
+                "margin": None if self.margin is None else round(self.margin, 4),
+                "runner_up_factor": None if self.runner_up is None else round(self.runner_up, 4),
+                "evaluations": self.evaluations}
+
+
+def scaled_street(street: StreetSegments, g: float) -> StreetSegments:
+    """The segments' horizontal geometry × g (what the route placement reads)."""
+    return replace(street, boundary_xy=tuple(np.asarray(b) * g for b in street.boundary_xy),
+                   centroids=np.asarray(street.centroids) * g, extent_m=np.asarray(street.extent_m) * g)
+
+
+def scan_stretch(street: StreetSegments, cams_xy: np.ndarray, length: float) -> tuple[StreetSegments, np.ndarray]:
+    """The segments and cameras of the ``length`` of route (levelled frame units) holding the most
+    façade points (the whole route when it is shorter): the scan's cost then does not grow with the route."""
+    arc = route_arclength(cams_xy)
+    if arc[-1] <= length:
+        return street, cams_xy
+    cent = np.asarray(street.centroids, np.float64).reshape(-1, 2)
+    _, nearest = cKDTree(cams_xy).query(cent)
+    s_seg = arc[nearest]
+    weight = np.array([len(b) for b in street.boundary_xy], np.float64)
+    starts = np.linspace(0.0, arc[-1] - length, 33)
+    held = [weight[(s_seg >= a) & (s_seg <= a + length)].sum() for a in starts]
+    a = starts[int(np.argmax(held))]
+    keep = np.flatnonzero((s_seg >= a) & (s_seg <= a + length))
+    cams = cams_xy[(arc >= a) & (arc <= a + length)]
+    sub = replace(street, ids=np.asarray(street.ids)[keep], boundary_xy=tuple(street.boundary_xy[i] for i in keep),
+                  centroids=cent[keep], extent_m=np.asarray(street.extent_m)[keep])
+    return sub, cams
+
+
+def coarse_config(cfg: RoutePriorConfig, search: ScaleSearchConfig) -> RoutePriorConfig:
+    """The route placement's config for the coarse scan: rotations farther apart (its maps and
+    windows stay: coarser maps, looser tolerances or shorter windows lose the true scale's peak)."""
+    f = search.coarse_factor
+    return cfg.model_copy(update={"rotation_step_deg": min(f * cfg.rotation_step_deg, 30.0)})
+
+
+def _value(street: StreetSegments, overview: OverviewSegments, cams_xy: np.ndarray, g: float,
+           cfg: RoutePriorConfig, maps: RouteMaps) -> float:
+    """The chain value of the route placement at factor g, its windows fixed in the street frame
+    (window_m × g metres), so that every factor places the same point sets."""
+    at = cfg.model_copy(update={"window_m": cfg.window_m * g})
+    return place_route(scaled_street(street, g), overview, cams_xy * g, at, maps).chain_value(cfg.link_cost)
+
+
+def _values(street, overview, cams_xy, grid: np.ndarray, cfg: RoutePriorConfig, maps: RouteMaps,
+            workers: int) -> np.ndarray:
+    if workers <= 1:
+        return np.array([_value(street, overview, cams_xy, g, cfg, maps) for g in grid])
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(workers, "crossview-scale") as pool:
+        return np.array(list(pool.map(lambda g: _value(street, overview, cams_xy, g, cfg, maps), grid)))
+
+
+def _grid(lo: float, hi: float, step: float) -> np.ndarray:
+    n = max(int(np.ceil(np.log(hi / lo) / np.log1p(step))), 1)
+    return np.exp(np.linspace(np.log(lo), np.log(hi), n + 1))
+
+
+def _peaks(values: np.ndarray) -> np.ndarray:
+    """Indices of the local maxima (ends included), best first."""
+    v = np.concatenate([[-np.inf], values, [-np.inf]])
+    idx = np.flatnonzero((v[1:-1] >= v[:-2]) & (v[1:-1] >= v[2:]))
+    return idx[np.argsort(-values[idx], kind="stable")]
+
+
+def _parabola_peak(g: np.ndarray, v: np.ndarray, i: int) -> float:
+    """The vertex (in log g) of the parabola through the best value and its two neighbours."""
+    if i == 0 or i == len(g) - 1:
+        return float(g[i])
+    x = np.log(g[i - 1:i + 2])
+    a, b, _ = np.polyfit(x, v[i - 1:i + 2], 2)
+    if a >= 0:
+        return float(g[i])
+    return float(np.exp(np.clip(-b / (2 * a), x[0], x[2])))
+
+
+def scan_scale(street: StreetSegments, overview: OverviewSegments, cams_xy: np.ndarray, lo: float, hi: float,
+               cfg: RoutePriorConfig, search: ScaleSearchConfig, coarse: bool = True, workers: int = 1) -> ScaleScan:
+    """The factor g in [lo, hi] whose route placement fits best (see the module doc). ``coarse``:
+    False scans only the fine grid over [lo, hi] (a range already narrow). ``workers``: threads,
+    one factor each (the result does not depend on them)."""
+    street, cams_xy = scan_stretch(street, cams_xy, search.stretch_windows * cfg.window_m)
+    # the maps' FFT padding must hold the largest window scanned
+    maps = route_maps(overview, cfg.model_copy(update={"window_m": cfg.window_m * max(hi, 1.0)}))
+    n_eval = 0
+    margin = runner = None
+    coarse_gv = np.zeros((0, 2))
+    if coarse:
+        ccfg = coarse_config(cfg, search)
+        g_c = _grid(lo, hi, search.coarse_step)
+        v_c = _values(street, overview, cams_xy, g_c, ccfg, maps, workers)
+        n_eval += len(g_c)
+        coarse_gv = np.column_stack([g_c, v_c])
+        peaks = _peaks(v_c)
+        best = peaks[0]
+        others = [p for p in peaks[1:] if abs(np.log(g_c[p] / g_c[best])) > np.log1p(search.peak_apart)]
+        if others and v_c[best] > 0:
+            margin, runner = float(v_c[others[0]] / v_c[best]), float(g_c[others[0]])
+        centre = float(g_c[best])
+        lo_f, hi_f = max(lo, centre / (1 + search.fine_reach)), min(hi, centre * (1 + search.fine_reach))
+    else:
+        lo_f, hi_f = lo, hi
+    g_f = _grid(lo_f, hi_f, search.fine_step)
+    v_f = _values(street, overview, cams_xy, g_f, cfg, maps, workers)
+    n_eval += len(g_f)
+    i = int(np.argmax(v_f))
+    return ScaleScan(_parabola_peak(g_f, v_f, i), float(v_f[i]), margin, runner, coarse_gv,
+                     np.column_stack([g_f, v_f]), n_eval)
