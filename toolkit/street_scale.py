@@ -111,9 +111,10 @@ def first_guess(scene: Scene) -> StreetScale | None:
 def scale_from_matching(scale: StreetScale, street, overview, capture: StreetCapture, cfg, workers: int = 1,
                         search=None) -> StreetScale:
     """One pass of the scan over street scales (``toolkit.matching.route_scale``) on the street
-    segments found at ``scale``: the same value, settled, when the scan's factor is within
-    METRIC_TOLERANCE of it (the per-segment scale of refine takes the rest up), else the factor's
-    scale, unsettled, for the street step to run again at (settled after MAX_PASSES).
+    segments found at ``scale``: the same value, settled, when the first scan finds no prominent
+    peak or the scan's factor is within METRIC_TOLERANCE of it (the per-segment scale of refine
+    takes the rest up), else the factor's scale, unsettled, for the street step to run again at
+    (settled after MAX_PASSES).
     ``cfg``: the route placement's config (the unary stage's)."""
     from toolkit.matching.route_prior import capture_order
     from toolkit.matching.route_scale import ScaleSearchConfig, scan_scale
@@ -129,14 +130,17 @@ def scale_from_matching(scale: StreetScale, street, overview, capture: StreetCap
             return replace(scale, settled=True, matching={**figures, "passes": passes, "reason": "no street ground"})
         lo, hi = CAMERA_HEIGHT_M[0] / h, CAMERA_HEIGHT_M[1] / h   # the factors that put the cameras there
         scan = scan_scale(street, overview, cams, lo, hi, cfg, search, coarse=True, workers=workers)
+        if scan.prominence < search.min_prominence:  # no scale stands out: the first guess stays
+            figures.update({"passes": passes, "pass_1": {"at": round(scale.value, 6), **scan.figures()},
+                            "reason": f"no distinct scale (prominence {scan.prominence:.2f} < {search.min_prominence:g})"})
+            return replace(scale, matching=figures, settled=True)
     else:
         r = 1.0 + RESCAN_REACH
         scan = scan_scale(street, overview, cams, 1.0 / r, r, cfg, search, coarse=False, workers=workers)
     estimate = scale.value / scan.factor
     figures.update({"passes": passes, f"pass_{passes}": {"at": round(scale.value, 6), **scan.figures()}})
-    if "margin" not in figures or scan.margin is not None:
-        figures["margin"] = scan.figures()["margin"]
-    value = 1.0 if abs(estimate - 1.0) <= METRIC_TOLERANCE else estimate
+    # a later pass keeps its own scale when the scan agrees with it (no snap to 1 that would ping-pong)
+    value = 1.0 if passes == 1 and abs(estimate - 1.0) <= METRIC_TOLERANCE else estimate
     lo_s, hi_s = SCALE_RANGE
     if not lo_s <= value <= hi_s:
         raise SceneError(f"{capture.sparse_path}: the street frame's scale found by the matching ({value:.4g}) is "

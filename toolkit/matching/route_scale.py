@@ -1,17 +1,19 @@
 """The street frame's scale from its façades and the over-view outlines alone (no GPS).
 
 A monocular SfM model has no metric scale. The route placement (``toolkit.matching.route_prior``)
-fits one rigid placement per window of route onto the over-view's outer outlines; at the wrong
-scale no rigid placement fits a whole window (a street's width, its corners and the gaps between
-its blocks are all off), so the chain's objective per window (``RoutePlacement.chain_value``)
-peaks at the true scale. ``scan_scale`` scans candidate factors g (levelled street xy × g = metres)
-over a range: a coarse scan on maps twice as coarse and tolerant (its peak is about twice as wide,
-so steps twice as long find it), then a fine scan around the best coarse peak on the route
-placement's own maps, and a parabola through the best fine value and its neighbours (in log g).
+fits one rigid placement per window of route onto the over-view's outer outlines; at the true
+scale every window's façades line up with the outlines at once, so the chain's objective per window
+(``RoutePlacement.chain_value``) has a sharp peak there. Away from it the objective drifts smoothly
+with the factor: a street shrunk onto the map fits somewhere more easily (fewer, closer façade cells),
+so the raw objective favours small factors. ``scan_scale`` therefore scans candidate factors g
+(levelled street xy × g = metres) over a range with a coarse step, takes each value's height above
+the scan's robust trend (a Theil-Sen line in log g) in units of the residuals' robust spread (the
+*prominence*), scans finely around the most prominent coarse peak, and puts a parabola through the
+best fine value and its neighbours (in log g).
 
-The margin is the best other coarse peak's value over the best one's: near 1, two scales fit
-alike (a straight street alone does not fix its own length), and the run's status says so.
-See docs/street_scale.md.
+A peak whose prominence is below ``min_prominence`` is no evidence of a scale (a route the placement
+cannot place at any scale looks like this), and the caller keeps its first guess.
+See docs/scale_and_heights.md.
 """
 
 from __future__ import annotations
@@ -44,27 +46,30 @@ class ScaleSearchConfig(BaseModel):
     stretch_windows: float = Field(3.0, gt=0, description="length of route scanned, the stretch with the most façades (route placement windows)")
     coarse_factor: float = Field(2.0, ge=1, description="the coarse scan's rotation step over the route placement's (factor)")
     peak_apart: float = Field(0.15, gt=0, description="coarse peaks closer than this (relative) are one peak (fraction)")
+    min_prominence: float = Field(3.5, ge=0, description="least prominence (robust z above the scan's trend) of a peak taken as the scale")
 
 
 @dataclass(frozen=True)
 class ScaleScan:
     """factor: the best g (levelled street xy × g = metres); value: its chain value per window;
-    margin: the best other coarse peak's value over the best one's (None: no other peak);
-    runner_up: that peak's factor; coarse, fine: (n, 2) arrays of (g, value) as scanned;
-    evaluations: placements computed."""
+    prominence: the coarse peak's robust z above the scan's trend (None: no coarse scan);
+    runner_up: the most prominent other coarse peak's factor and runner_up_prominence its z (None:
+    no other peak); coarse, fine: (n, 2) arrays of (g, value) as scanned; evaluations: placements
+    computed."""
 
     factor: float
     value: float
-    margin: float | None
+    prominence: float | None
     runner_up: float | None
+    runner_up_prominence: float | None
     coarse: np.ndarray
     fine: np.ndarray
     evaluations: int
 
     def figures(self) -> dict:
-        return {"factor": round(self.factor, 5), "value": round(self.value, 4),
-                "margin": None if self.margin is None else round(self.margin, 4),
-                "runner_up_factor": None if self.runner_up is None else round(self.runner_up, 4),
+        r = (lambda v, k=4: None if v is None else round(v, k))
+        return {"factor": round(self.factor, 5), "value": round(self.value, 4), "prominence": r(self.prominence, 2),
+                "runner_up_factor": r(self.runner_up), "runner_up_prominence": r(self.runner_up_prominence, 2),
                 "evaluations": self.evaluations}
 
 
@@ -124,6 +129,18 @@ def _grid(lo: float, hi: float, step: float) -> np.ndarray:
     return np.exp(np.linspace(np.log(lo), np.log(hi), n + 1))
 
 
+def prominence(grid: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Each value's height above the robust trend of the scan (Theil-Sen line in log g), in units of
+    the residuals' robust spread (1.4826 MAD)."""
+    from scipy.stats import theilslopes
+
+    x = np.log(grid)
+    slope, intercept, _, _ = theilslopes(values, x)
+    r = values - (intercept + slope * x)
+    spread = 1.4826 * np.median(np.abs(r - np.median(r)))
+    return r / max(spread, 1e-6)
+
+
 def _peaks(values: np.ndarray) -> np.ndarray:
     """Indices of the local maxima (ends included), best first."""
     v = np.concatenate([[-np.inf], values, [-np.inf]])
@@ -151,7 +168,7 @@ def scan_scale(street: StreetSegments, overview: OverviewSegments, cams_xy: np.n
     # the maps' FFT padding must hold the largest window scanned
     maps = route_maps(overview, cfg.model_copy(update={"window_m": cfg.window_m * max(hi, 1.0)}))
     n_eval = 0
-    margin = runner = None
+    z_best = runner = z_runner = None
     coarse_gv = np.zeros((0, 2))
     if coarse:
         ccfg = coarse_config(cfg, search)
@@ -159,11 +176,13 @@ def scan_scale(street: StreetSegments, overview: OverviewSegments, cams_xy: np.n
         v_c = _values(street, overview, cams_xy, g_c, ccfg, maps, workers)
         n_eval += len(g_c)
         coarse_gv = np.column_stack([g_c, v_c])
-        peaks = _peaks(v_c)
+        z = prominence(g_c, v_c)
+        peaks = _peaks(z)
         best = peaks[0]
+        z_best = float(z[best])
         others = [p for p in peaks[1:] if abs(np.log(g_c[p] / g_c[best])) > np.log1p(search.peak_apart)]
-        if others and v_c[best] > 0:
-            margin, runner = float(v_c[others[0]] / v_c[best]), float(g_c[others[0]])
+        if others:
+            runner, z_runner = float(g_c[others[0]]), float(z[others[0]])
         centre = float(g_c[best])
         lo_f, hi_f = max(lo, centre / (1 + search.fine_reach)), min(hi, centre * (1 + search.fine_reach))
     else:
@@ -172,5 +191,5 @@ def scan_scale(street: StreetSegments, overview: OverviewSegments, cams_xy: np.n
     v_f = _values(street, overview, cams_xy, g_f, cfg, maps, workers)
     n_eval += len(g_f)
     i = int(np.argmax(v_f))
-    return ScaleScan(_parabola_peak(g_f, v_f, i), float(v_f[i]), margin, runner, coarse_gv,
+    return ScaleScan(_parabola_peak(g_f, v_f, i), float(v_f[i]), z_best, runner, z_runner, coarse_gv,
                      np.column_stack([g_f, v_f]), n_eval)
