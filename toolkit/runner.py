@@ -192,6 +192,12 @@ def _settle_scale(plan: Plan, outputs: RunOutputs, obs) -> tuple[RunOutputs, flo
         new = scale_from_matching(scale, outputs.street, outputs.overview, plan.capture, cfg,
                                   workers=thread_budget())
     seconds = time.perf_counter() - t0
+    found = new.matching or {}
+    if new.source == "matching" and found.get("reason", "").startswith("no distinct"):
+        h = found.get("camera_height_frame")
+        obs.warn(f"street scale {new.value:.4g}: the façades show no distinct scale against the over-view, so it rests "
+                 f"on the cameras' height alone ({h:.3g} frame units above the points under them, taken as "
+                 f"{h / new.value:.2f} m); set street_scale when it is known")
     if not new.settled:
         kept = RunOutputs(scene=plan.scene, capture=plan.capture, overview=outputs.overview)
         raise _Rescale(new, kept, seconds)

@@ -13,9 +13,9 @@ number in [0.05, 20] (1.0: the frame is metric). ``auto``:
   one is another scale (at most MAX_PASSES street passes);
 - otherwise 1 (``assumed``).
 
-An estimate within 2 % of 1 is taken as metric (1), and within 2 % of the scale the street step ran
-at is kept: a route's scale drift alone moves it that much, and the per-segment scale (refine)
-takes it up. The pipeline reads the street cloud and the COLMAP model divided by the scale, so every
+An estimate within 2 % of 1 is taken as metric (1): a route's scale drift alone moves it that much,
+and the per-segment scale (refine) takes it up. A matching estimate within 5 % (KEEP_BAND) of the
+scale the street step ran at keeps that scale: the per-segment scale reaches that far. The pipeline reads the street cloud and the COLMAP model divided by the scale, so every
 stage works in metres; the stored warp takes input-frame points (``crossview apply``).
 See docs/scale_and_heights.md.
 """
@@ -42,6 +42,9 @@ CAMERA_HEIGHT_M = (1.0, 4.0)
 NOMINAL_CAMERA_HEIGHT_M = 2.0
 UNDER_POINTS = 30     # COLMAP points nearest each camera horizontally, for its height
 MAX_PASSES = 3        # street passes the matching may ask for
+# the matching's estimate replaces the scale the street step ran at only beyond the per-segment
+# scale's reach (refine.exhaustive scale.max_deviation): within it, refine measures the scale better
+KEEP_BAND = 0.05
 RESCAN_REACH = 0.1    # a later pass scans the factors within 1 ± this of its scale
 
 
@@ -112,8 +115,8 @@ def scale_from_matching(scale: StreetScale, street, overview, capture: StreetCap
                         search=None) -> StreetScale:
     """One pass of the scan over street scales (``toolkit.matching.route_scale``) on the street
     segments found at ``scale``: the same value, settled, when the first scan finds no prominent
-    peak or the scan's factor is within METRIC_TOLERANCE of it (the per-segment scale of refine
-    takes the rest up), else the factor's scale, unsettled, for the street step to run again at
+    peak or the scan's factor is within KEEP_BAND of it (the per-segment scale of refine takes the
+    rest up), else the factor's scale, unsettled, for the street step to run again at
     (settled after MAX_PASSES).
     ``cfg``: the route placement's config (the unary stage's)."""
     from toolkit.matching.route_prior import capture_order
@@ -145,7 +148,7 @@ def scale_from_matching(scale: StreetScale, street, overview, capture: StreetCap
     if not lo_s <= value <= hi_s:
         raise SceneError(f"{capture.sparse_path}: the street frame's scale found by the matching ({value:.4g}) is "
                          f"outside [{lo_s:g}, {hi_s:g}]: set street_scale, or give street/gps.csv")
-    if abs(value / scale.value - 1.0) <= METRIC_TOLERANCE or passes >= MAX_PASSES:
+    if abs(value / scale.value - 1.0) <= KEEP_BAND or passes >= MAX_PASSES:
         return replace(scale, estimate=estimate, matching=figures, settled=True)
     return StreetScale(value, "matching", estimate=estimate, matching=figures, settled=False)
 

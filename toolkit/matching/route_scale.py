@@ -46,7 +46,7 @@ class ScaleSearchConfig(BaseModel):
     stretch_windows: float = Field(3.0, gt=0, description="length of route scanned, the stretch with the most façades (route placement windows)")
     coarse_factor: float = Field(2.0, ge=1, description="the coarse scan's rotation step over the route placement's (factor)")
     peak_apart: float = Field(0.15, gt=0, description="coarse peaks closer than this (relative) are one peak (fraction)")
-    min_prominence: float = Field(3.5, ge=0, description="least prominence (robust z above the scan's trend) of a peak taken as the scale")
+    min_prominence: float = Field(4.5, ge=0, description="least prominence (robust z above the scan's trend) of a peak taken as the scale")
 
 
 @dataclass(frozen=True)
