@@ -25,7 +25,8 @@ MANIFEST_KEYS: dict[str, dict[str, str]] = {
                  "labels": "labels", "cloud": "overview_cloud", "dem": "dem"},
     "street": {"cloud": "street_cloud", "sparse": "sparse", "gps": "gps"},
     "truth": {"lidar": "truth_lidar", "street_points": "truth_street_points",
-              "street_labels": "truth_street_labels", "buildings": "truth_buildings",
+              "street_labels": "truth_street_labels", "street_rows": "truth_street_rows",
+              "buildings": "truth_buildings",
               "cameras": "truth_cameras"},
 }
 FIELD_TO_MANIFEST = {f: f"{sec}.{k}" for sec, keys in MANIFEST_KEYS.items() for k, f in keys.items()}

@@ -130,6 +130,7 @@ class SceneFiles:
     truth_lidar: Path | None = None
     truth_street_points: Path | None = None
     truth_street_labels: Path | None = None
+    truth_street_rows: Path | None = None   # rows of the street cloud the truth arrays hold (None: every row)
     truth_buildings: Path | None = None
     truth_cameras: Path | None = None
 
