@@ -26,7 +26,8 @@ WHO = "the street capture"
 class StreetCapture:
     """The street capture of ``scene`` (its street scale resolved), in metres.
 
-    points: (N,3) float64 street cloud divided by the street scale, read-only, row i = input point i.
+    points: (N,3) float64 street cloud divided by the street scale, read-only, row i = input point i;
+        with ``step`` > 1 the analysis cloud instead, row i = input point ``rows[i]``.
     sparse: the COLMAP model, camera centres and points divided by the street scale; None without
         street/sparse. gps: the fixes of street/gps.csv, None without one.
     attributes(): the cloud as written (street frame units) with every attribute, in input order.
@@ -38,6 +39,17 @@ class StreetCapture:
     """
 
     scene: Scene
+    step: int = 1               # the run analyses rows 0, step, 2·step, … (toolkit.stream; 1: every row)
+    chunk_points: int = 2_000_000  # rows per chunk of a streamed read
+
+    @property
+    def rows(self) -> np.ndarray | None:
+        """The input rows of ``points`` (None: every row, in order)."""
+        if self.step == 1:
+            return None
+        from toolkit.io.attributes import open_cloud
+
+        return np.arange(0, open_cloud(self.cloud_path).count, self.step, dtype=np.int64)
 
     @property
     def scale(self) -> StreetScale:
@@ -59,7 +71,11 @@ class StreetCapture:
     def points(self) -> np.ndarray:
         from toolkit.scene import load_points
 
-        return load_points(self.scene, "street_cloud", WHO)
+        if self.step == 1:
+            return load_points(self.scene, "street_cloud", WHO)
+        from toolkit.stream import analysis_points
+
+        return analysis_points(self.cloud_path, self.step, self.chunk_points, self.scale.value)
 
     @property
     def sparse(self) -> SparseModel | None:

@@ -34,7 +34,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     obs = ProgressObserver(quiet=args.quiet)
     res = run_recipe(args.recipe, scene=args.scene, out=args.out, overrides=args.overrides,
-                     observer=obs, overwrite=args.overwrite, rerun=False if args.no_rerun else None)
+                     observer=obs, overwrite=args.overwrite, rerun=False if args.no_rerun else None,
+                     scheduler=args.scheduler)
     if not args.quiet:  # -q: only errors, and the verdict below (an error-like outcome)
         print_summary(res)
     line = verdict_line(res.assessment)
@@ -165,6 +166,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, help="output folder (default out/<recipe name>)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.add_argument("--no-rerun", action="store_true", help="do not write recording.rrd")
+    p.add_argument("--scheduler", help="Dask scheduler for the chunked passes over a street cloud of more than "
+                   "stream.max_points points, e.g. tcp://host:8786")
     p.add_argument("-q", "--quiet", action="store_true",
                    help="print nothing but errors (and the final 'registration unreliable' line)")
     p.set_defaults(func=cmd_run)

@@ -12,10 +12,11 @@ from __future__ import annotations
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
+from toolkit.errors import CrossviewError
 from toolkit.io.attributes import CHUNK_POINTS, CloudChunk, CloudSource, memory_cloud
 from toolkit.io.cloud_out import LasGrid, LasWriter, PlyWriter, ply_fields, segment_name
 from toolkit.refine.transforms import rotation_part
@@ -57,8 +58,9 @@ class CarrierStats:
 
 
 def export_cloud(source: CloudSource, mover: Mover, crs: str, grid: LasGrid, laz: Path | None = None,
-                 ply: Path | None = None, chunk_points: int = CHUNK_POINTS) -> CarrierStats:
-    """Write ``source`` moved by ``mover`` to ``laz`` and/or ``ply``."""
+                 ply: Path | None = None, chunk_points: int = CHUNK_POINTS, client: Any = None) -> CarrierStats:
+    """Write ``source`` moved by ``mover`` to ``laz`` and/or ``ply`` (the chunks moved on ``client``'s
+    workers when given, ``toolkit.stream``; the same bytes either way)."""
     wkt, normals, seg = crs_wkt(crs), source.normals, segment_name(source.names)
     total, top = 0.0, 0.0
     with ExitStack() as stack:
@@ -66,8 +68,7 @@ def export_cloud(source: CloudSource, mover: Mover, crs: str, grid: LasGrid, laz
         ply_out = None
         if ply is not None:
             ply_out = stack.enter_context(PlyWriter(ply, source.count, ply_fields(source), (crs_comment(crs),)))
-        for chunk in source.chunks(chunk_points):
-            moved = mover(chunk)
+        for chunk, moved in moved_chunks(source, mover, chunk_points, client):
             values = turned_values(chunk, moved, normals, dict(source.fields))
             if las_out is not None:
                 las_out.write(chunk, moved.xyz, values, moved.segment)
@@ -78,6 +79,33 @@ def export_cloud(source: CloudSource, mover: Mover, crs: str, grid: LasGrid, laz
                 total += float(moved.carrier_distance_m.sum())
                 top = max(top, float(moved.carrier_distance_m.max()))
     return CarrierStats(source.count, total / max(source.count, 1), top)
+
+
+def moved_chunks(source: CloudSource, mover: Mover, chunk_points: int,
+                 client: Any = None) -> Iterator[tuple[CloudChunk, Moved]]:
+    """(chunk, moved chunk) in input order; read and moved on the client's workers when there is one
+    and the file can be read from any row (not an ASCII PLY nor a cloud held in memory)."""
+    seekable = source.kind == "las" or (source.kind == "ply" and source.ply.fmt != "ascii")
+    if client is None or not seekable:
+        for chunk in source.chunks(chunk_points):
+            yield chunk, mover(chunk)
+        return
+    from toolkit.stream import map_spans, spans
+
+    yield from map_spans(_ReadMove(source.path), spans(source.count, chunk_points), client, shared=mover)
+
+
+@dataclass(frozen=True)
+class _ReadMove:
+    """A Dask task: read one span of the cloud at ``path`` and move it."""
+
+    path: Path
+
+    def __call__(self, span, mover: Mover) -> tuple[CloudChunk, Moved]:
+        from toolkit.io.attributes import open_cloud
+
+        chunk = open_cloud(self.path).read(span.start, span.count)
+        return chunk, mover(chunk)
 
 
 def turned_values(chunk: CloudChunk, moved: Moved, normals: tuple[str, str, str] | None,
@@ -148,10 +176,22 @@ def write_registered(out: Path, plan, outputs, warnings: list[str]) -> None:
     if grid.scale_m != 0.001:
         warnings.append(f"registered.laz: the cloud spans more than 1 mm LAS integers hold; written at "
                         f"{grid.scale_m} m steps (registered.ply keeps float64)")
-    source = street_source(outputs.capture, registration)
-    mover = registration_mover(registration, outputs.transforms, source.normals)
-    export_cloud(source, mover, scene.crs, grid, laz=out / "registered.laz",
-                 ply=out / "registered.ply" if plan.recipe.outputs.get("ply", True) else None)
+    capture = outputs.capture
+    ply = out / "registered.ply" if plan.recipe.outputs.get("ply", True) else None
+    if capture is not None and capture.step > 1:
+        # the run analysed every k-th point: every input point is moved as ``crossview apply`` does
+        if registration.warp is None or registration.warp.source is None:
+            raise CrossviewError(f"{capture.cloud_path}: a cloud analysed on every {capture.step}-th point needs a "
+                                 "warp step that stores its warp (warp.inverse_log)")
+        source = capture.attributes()
+        from toolkit.stream import active_client
+
+        export_cloud(source, warp_mover(registration.warp, source.normals), scene.crs, grid,
+                     laz=out / "registered.laz", ply=ply, chunk_points=capture.chunk_points, client=active_client())
+    else:
+        source = street_source(capture, registration)
+        mover = registration_mover(registration, outputs.transforms, source.normals)
+        export_cloud(source, mover, scene.crs, grid, laz=out / "registered.laz", ply=ply)
     if registration.warp is not None and registration.warp.source is not None:
         save_warp(out / FILE_NAME, StoredWarp(registration.warp, scene.crs, crs_wkt(scene.crs), grid.offset_m,
                                               grid.scale_m))
@@ -163,8 +203,7 @@ def warp_mover(warp, normals: tuple[str, str, str] | None) -> Mover:
     """Each point takes the carrier of the nearest street point of the run, then the blend."""
 
     def move(chunk: CloudChunk) -> Moved:
-        carriers, distance = warp.carriers(chunk.xyz)
-        maps = warp.maps(chunk.xyz, carriers)
+        maps, carriers, distance = warp.move(chunk.xyz)
         vectors = chunk_normals(chunk, normals)
         return Moved(maps.apply(chunk.xyz), carriers.astype(np.int32),
                      None if vectors is None else maps.rotate(vectors), distance)

@@ -16,7 +16,7 @@ import yaml
 from toolkit.errors import RecipeError
 from toolkit.stage import KINDS
 
-TOP_KEYS = ("recipe", "name", "base", "scene", "street_scale", "steps", "log", "outputs")
+TOP_KEYS = ("recipe", "name", "base", "scene", "street_scale", "steps", "log", "outputs", "stream")
 STEP_KEYS = ("use", "params")
 LOG_KEYS = ("rerun", "max_points", "progress", "report")
 OUTPUT_KEYS = ("ply",)  # outputs: {ply: false} skips registered.ply (registered.laz is always written)
@@ -40,6 +40,7 @@ class Recipe:
     log: dict[str, Any] = field(default_factory=dict)
     outputs: dict[str, Any] = field(default_factory=dict)
     street_scale: Any = None  # 'auto', a number, or None (the scene's setting)
+    stream: Any = None  # toolkit.stream.StreamSettings (large street clouds, chunked passes)
 
     def to_dict(self) -> dict[str, Any]:
         out = {
@@ -51,6 +52,8 @@ class Recipe:
             out["outputs"] = dict(self.outputs)
         if self.street_scale is not None:
             out["street_scale"] = self.street_scale
+        if self.stream is not None and self.stream.model_fields_set:
+            out["stream"] = self.stream.model_dump(exclude_unset=True)
         return out
 
     def to_yaml(self) -> str:
@@ -211,7 +214,23 @@ def _validate(path: Path, data: dict[str, Any]) -> Recipe:
     if bad:
         raise RecipeError(f"{path}: log: unknown key {bad[0]!r} (allowed: {', '.join(LOG_KEYS)})")
     return Recipe(path=path, name=name, scene=scene, steps=tuple(steps), log=dict(log),
-                  outputs=_outputs(path, data.get("outputs")), street_scale=data.get("street_scale"))
+                  outputs=_outputs(path, data.get("outputs")), street_scale=data.get("street_scale"),
+                  stream=_stream(path, data.get("stream")))
+
+
+def _stream(path: Path, stream: Any):
+    from pydantic import ValidationError
+
+    from toolkit.stream import StreamSettings
+
+    if stream is not None and not isinstance(stream, dict):
+        raise RecipeError(f"{path}: stream: must be a mapping (e.g. stream: {{max_points: 8000000}})")
+    try:
+        return StreamSettings(**(stream or {}))
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        loc = ".".join(str(p) for p in err.get("loc", ()))
+        raise RecipeError(f"{path}: stream.{loc}: {err.get('msg', 'invalid')}") from exc
 
 
 def _outputs(path: Path, outputs: Any) -> dict[str, Any]:

@@ -94,7 +94,7 @@ def build(recipe: Recipe, scene: str | Path | None = None, registry: Registry | 
         available.add(KIND_OUTPUT[spec.name])
         stages.append((spec, stage))
     scene_obj = resolve_street_scale(load_scene(resolve_scene_path(recipe, scene)), recipe.street_scale, recipe.path)
-    capture = StreetCapture(scene_obj)  # the run's one capture, in metres now that the scale is known
+    capture = street_capture(scene_obj, recipe)  # the run's one capture, in metres now that the scale is known
     needed: list[str] = []
     for spec, stage in stages:
         for need in type(stage).scene_needs(stage.params):
@@ -108,6 +108,23 @@ def build(recipe: Recipe, scene: str | Path | None = None, registry: Registry | 
 
     check_scene_files(scene_obj, needed, [stage for _, stage in stages], capture)
     return Plan(recipe=recipe, scene=scene_obj, stages=tuple(stages), capture=capture)
+
+
+def street_capture(scene: Scene, recipe: Recipe) -> StreetCapture:
+    """The scene's street capture; a cloud of more than ``stream.max_points`` points is analysed on
+    every k-th point (``toolkit.stream``)."""
+    from toolkit.stream import StreamSettings, thinning_step
+
+    settings = recipe.stream or StreamSettings()
+    if not scene.has("street_cloud"):
+        return StreetCapture(scene)
+    from toolkit.io.attributes import open_cloud
+
+    step = thinning_step(open_cloud(scene.files.street_cloud).count, settings.max_points)
+    if step > 1:
+        log.info("%s: more than %d points: the analysis takes every %d-th point, the registered clouds are "
+                 "written a chunk at a time", scene.files.street_cloud, settings.max_points, step)
+    return StreetCapture(scene, step, settings.chunk_points)
 
 
 def _run_step(spec: StepSpec, stage: Stage, outputs: RunOutputs, obs: Any,
@@ -176,7 +193,7 @@ def execute(plan: Plan, obs: Observer | None = None,
 
 def _with_scale(plan: Plan, scale: StreetScale) -> Plan:
     scene = replace(plan.scene, street_scale=scale)
-    return replace(plan, scene=scene, capture=StreetCapture(scene))
+    return replace(plan, scene=scene, capture=replace(plan.capture, scene=scene))
 
 
 def _settle_scale(plan: Plan, outputs: RunOutputs, obs) -> tuple[RunOutputs, float]:
@@ -202,7 +219,7 @@ def _settle_scale(plan: Plan, outputs: RunOutputs, obs) -> tuple[RunOutputs, flo
         kept = RunOutputs(scene=plan.scene, capture=plan.capture, overview=outputs.overview)
         raise _Rescale(new, kept, seconds)
     scene = replace(outputs.scene, street_scale=new)
-    return replace(outputs, scene=scene, capture=StreetCapture(scene)), seconds
+    return replace(outputs, scene=scene, capture=replace(plan.capture, scene=scene)), seconds
 
 
 def _execute(plan: Plan, obs: Observer, overlap: bool,
@@ -307,7 +324,7 @@ def _prepare_out(out: Path, overwrite: bool) -> Path:
 def run_recipe(recipe_path: str | Path, scene: str | Path | None = None, out: str | Path | None = None,
                overrides: Iterable[str] = (), observer: Observer | None = None, overwrite: bool = False,
                registry: Registry | None = None, rerun: bool | None = None,
-               recipe: Recipe | None = None, overlap: bool | None = None) -> RunResult:
+               recipe: Recipe | None = None, overlap: bool | None = None, scheduler: str | None = None) -> RunResult:
     """Load, build and run a recipe, writing ``out`` (default ``out/<recipe name>``) atomically.
 
     The run is assessed without truth (``toolkit.status``): an unreliable run still writes every
@@ -315,12 +332,25 @@ def run_recipe(recipe_path: str | Path, scene: str | Path | None = None, out: st
 
     ``rerun=False`` disables the recipe's rerun log (tests, compare/batch use their own observers).
     ``overlap``: see ``execute`` (False: one step at a time, e.g. to profile each step alone).
+    ``scheduler``: a Dask scheduler address for the chunked passes over a street cloud of more than
+    ``stream.max_points`` points (``toolkit.stream``; default: ``stream.workers`` local processes, or
+    this process); unused for a cloud the run holds whole.
     """
-    from toolkit.outputs import write_outputs  # matplotlib and friends only when running
-
     recipe = recipe or load_recipe(recipe_path, overrides)
     plan = build(recipe, scene=scene, registry=registry)
     out_dir = Path(out) if out is not None else Path("out") / recipe.name
+    if plan.capture.step > 1:
+        from toolkit.stream import use_client
+
+        with use_client(scheduler, recipe.stream.workers):
+            return _run_plan(plan, recipe, out_dir, overwrite, observer, rerun, overlap)
+    return _run_plan(plan, recipe, out_dir, overwrite, observer, rerun, overlap)
+
+
+def _run_plan(plan: Plan, recipe: Recipe, out_dir: Path, overwrite: bool, observer: Observer | None,
+              rerun: bool | None, overlap: bool | None) -> RunResult:
+    from toolkit.outputs import write_outputs  # matplotlib and friends only when running
+
     tmp = _prepare_out(out_dir, overwrite)
     obs = observer or NullObserver()
     rerun_obs = None

@@ -357,6 +357,8 @@ class Registration:
     weighted RMS distance of their placements from the blended one, metres), or None (unknown).
     warp: the point warp that moved ``points`` (``toolkit.warp.model.PointWarp``, with the points'
     carriers), stored as ``warp.npz`` for ``crossview apply``; None when the stage gives none.
+    rows: (N,) input row of each point when the run analysed every k-th point of a large cloud
+    (``toolkit.stream``); None: row i is input point i.
     """
 
     points: Array
@@ -366,6 +368,7 @@ class Registration:
     point_segment: Array
     camera_spread_m: Array | None = None
     warp: Any = None
+    rows: Array | None = None
 
 
 @dataclass(frozen=True)

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from toolkit.errors import SceneError
+from toolkit.io.attributes import CHUNK_POINTS
 from toolkit.evaluation import metrics as M
 from toolkit.scene import load_array, load_cloud
 from toolkit.threads import thread_budget
@@ -44,10 +45,11 @@ class Reference:
 
 @dataclass(frozen=True)
 class PointErrors:
-    """(N,) 3D and horizontal error of every registered point vs truth/street_points.npy."""
+    """3D and horizontal error of every street point with truth (truth/street_points.npy)."""
 
     error_3d: np.ndarray
     horizontal: np.ndarray
+    rows: np.ndarray | None = None  # the input rows they belong to (None: every row, in order)
 
 
 @dataclass(frozen=True)
@@ -90,14 +92,36 @@ def read_reference(scene: Scene, ref: Reference) -> np.ndarray:
 
 
 def truth_errors(registration: Registration, scene: Scene) -> PointErrors | None:
-    """The error of every registered point vs truth/street_points.npy (None: no truth)."""
+    """The error of every registered point with truth vs truth/street_points.npy (None: no truth).
+
+    The truth may hold only some rows (``truth.street_rows``); a run that analysed every k-th point of
+    a large cloud (``Registration.rows``) has those rows moved by its warp a chunk at a time."""
     if not scene.has("truth_street_points"):
         return None
     true_pts = load_array(scene, "truth_street_points")
-    if true_pts.shape != registration.points.shape:
+    rows = truth_rows(scene, len(true_pts))
+    if registration.rows is not None:
+        from toolkit.stream import active_client, moved_rows
+
+        wanted = np.arange(len(true_pts)) if rows is None else rows
+        moved = moved_rows(scene.files.street_cloud, wanted, registration.warp, CHUNK_POINTS, active_client())
+        return PointErrors(*M.point_errors(moved, true_pts), rows=wanted)
+    pts = registration.points if rows is None else np.asarray(registration.points)[rows]
+    if true_pts.shape != pts.shape:
         raise SceneError(f"{scene.files.truth_street_points}: shape {true_pts.shape} does not match "
-                         f"the {registration.points.shape} registered street points")
-    return PointErrors(*M.point_errors(registration.points, true_pts))
+                         f"the {pts.shape} registered street points")
+    return PointErrors(*M.point_errors(pts, true_pts), rows=rows)
+
+
+def truth_rows(scene: Scene, count: int) -> np.ndarray | None:
+    """truth.street_rows (sorted, as many as the truth arrays), or None (the truth holds every row)."""
+    if not scene.has("truth_street_rows"):
+        return None
+    rows = np.asarray(load_array(scene, "truth_street_rows"), np.int64)
+    if rows.shape != (count,) or (len(rows) > 1 and np.any(np.diff(rows) <= 0)):
+        raise SceneError(f"{scene.files.truth_street_rows}: expected {count} increasing row numbers, "
+                         f"got shape {rows.shape}")
+    return rows
 
 
 def chamfer_summary(a: np.ndarray, b: np.ndarray, dims: str, cfg: ChamferConfig) -> dict[str, Any]:

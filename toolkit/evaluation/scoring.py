@@ -3,14 +3,14 @@ centres) and metrics.json's per-segment table (schema: toolkit.metrics_model).""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
 from toolkit.evaluation import metrics as M
 from toolkit.evaluation import truth as T
-from toolkit.evaluation.pointwise import PointErrors
+from toolkit.evaluation.pointwise import PointErrors, truth_rows
 from toolkit.scene import load_array
 from toolkit.types import AdjustedCameras, Matches, OverviewSegments, Registration, Scene, StreetSegments
 
@@ -40,14 +40,20 @@ def truth_scores(scene: Scene, registration: Registration, cameras: AdjustedCame
         out["truth"] = point_truth(errors, cutoff_m, hist_bin_m)
     else:
         notes.append("no truth.street_points: per-point error skipped")
-    seg_scores = match_scores(scene, matches, street, overview, notes)
+    seg_scores = match_scores(scene, matches, street, overview, notes, registration.rows)
     if seg_scores is not None:
         out["matching"] = {k: v for k, v in seg_scores.items() if not k.startswith("_")}
     if scene.has("truth_cameras"):
         out["cameras"] = camera_scores(scene, registration, cameras)
     else:
         notes.append("no truth.cameras: camera-centre error skipped")
-    return TruthScores(out, errors.error_3d if errors is not None else None, seg_scores)
+    # per-point errors of other rows than the registration's (a truth subset, an analysis cloud) have no
+    # per-segment table: the segments know the registration's rows only
+    aligned = errors is not None and errors.rows is None and registration.rows is None
+    if errors is not None and not aligned:
+        notes.append(f"per-point errors on the {len(errors.error_3d):,} street points with truth; "
+                     "no per-segment errors")
+    return TruthScores(out, errors.error_3d if aligned else None, seg_scores)
 
 
 def point_truth(errors: PointErrors, cutoff_m: float, hist_bin_m: float) -> dict[str, Any]:
@@ -61,11 +67,23 @@ def point_truth(errors: PointErrors, cutoff_m: float, hist_bin_m: float) -> dict
 
 
 def match_scores(scene: Scene, matches: Matches | None, street: StreetSegments | None,
-                 overview: OverviewSegments | None, notes: list[str]) -> dict | None:
-    """T.segment_match_scores against the true labels and buildings (None, with a note: not scored)."""
+                 overview: OverviewSegments | None, notes: list[str],
+                 rows: np.ndarray | None = None) -> dict | None:
+    """T.segment_match_scores against the true labels and buildings (None, with a note: not scored).
+    ``rows``: the input rows of the street points (``Registration.rows``; None: every row)."""
     if matches is not None and street is not None and overview is not None \
             and scene.has("truth_street_labels") and scene.has("truth_buildings"):
         labels = load_array(scene, "truth_street_labels")
+        truth_at = truth_rows(scene, len(labels))
+        if truth_at is not None or rows is not None:  # score on the rows both hold
+            mine = np.arange(len(street.point_labels)) if rows is None else np.asarray(rows)
+            theirs = np.arange(len(labels)) if truth_at is None else truth_at
+            _, i_mine, i_truth = np.intersect1d(mine, theirs, assume_unique=True, return_indices=True)
+            if not len(i_mine):
+                notes.append("segment-match precision/recall skipped: no street point of the analysis has a "
+                             "true label")
+                return None
+            street, labels = replace(street, point_labels=np.asarray(street.point_labels)[i_mine]), labels[i_truth]
         ids, geoms = T.read_true_buildings(scene.files.truth_buildings, scene.crs)
         return T.segment_match_scores(matches, street, overview, labels, ids, geoms)
     missing = [n for n, v in (("matches", matches), ("street segments", street),

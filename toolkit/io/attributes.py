@@ -89,6 +89,18 @@ class CloudSource:
         reader = {"ply": _ply_chunks, "las": _las_chunks, "memory": _memory_chunks}[self.kind]
         return reader(self, size)
 
+    def read(self, start: int, count: int) -> CloudChunk:
+        """Rows ``start`` … ``start + count − 1`` alone (an ASCII PLY is read from its start)."""
+        if self.kind == "las":
+            return _las_read(self, start, count)
+        if self.kind == "ply" and self.ply.fmt != "ascii":
+            return _ply_read(self, start, count)
+        for chunk in self.chunks(start + count if self.kind == "ply" else count):
+            if chunk.start <= start < chunk.start + len(chunk.xyz):
+                rows = slice(start - chunk.start, start - chunk.start + count)
+                return CloudChunk(start, chunk.xyz[rows], {n: v[rows] for n, v in chunk.values.items()})
+        raise SceneError(f"{self.path}: rows {start}-{start + count - 1} are beyond its {self.count} points")
+
 
 def open_cloud(path: str | Path) -> CloudSource:
     """Header only (nothing of the points is read); a ``SceneError`` naming the file when unusable."""
@@ -165,15 +177,18 @@ def _open_ply(path: Path) -> CloudSource:
 
 
 def _ply_chunks(src: CloudSource, size: int) -> Iterator[CloudChunk]:
-    head = src.ply
-    if head.fmt == "ascii":
+    if src.ply.fmt == "ascii":
         yield from _ascii_ply_chunks(src, size)
         return
-    rec = np.memmap(src.path, dtype=head.vertex_dtype(), mode="r", offset=head.data_offset, shape=(src.count,))
     for start in range(0, src.count, size):
-        part = rec[start:start + size]
-        yield CloudChunk(start, _xyz(part), {n: np.asarray(part[n]).astype(t.newbyteorder("="))
-                                             for n, t in src.fields})
+        yield _ply_read(src, start, size)
+
+
+def _ply_read(src: CloudSource, start: int, count: int) -> CloudChunk:
+    head = src.ply
+    rec = np.memmap(src.path, dtype=head.vertex_dtype(), mode="r", offset=head.data_offset, shape=(src.count,))
+    part = rec[start:start + count]
+    return CloudChunk(start, _xyz(part), {n: np.asarray(part[n]).astype(t.newbyteorder("=")) for n, t in src.fields})
 
 
 def _ascii_ply_chunks(src: CloudSource, size: int) -> Iterator[CloudChunk]:
@@ -233,6 +248,18 @@ def _las_chunks(src: CloudSource, size: int) -> Iterator[CloudChunk]:
             start += len(chunk)
     if start != src.count:
         raise SceneError(f"{src.path}: LAS/LAZ is truncated ({start} of {src.count} points)")
+
+
+def _las_read(src: CloudSource, start: int, count: int) -> CloudChunk:
+    import laspy
+
+    with laspy.open(src.path) as reader:
+        reader.seek(start)
+        chunk = reader.read_points(count)
+    if len(chunk) != min(count, src.count - start):
+        raise SceneError(f"{src.path}: LAS/LAZ is truncated ({start + len(chunk)} of {src.count} points)")
+    xyz = np.column_stack([np.asarray(chunk.x), np.asarray(chunk.y), np.asarray(chunk.z)])
+    return CloudChunk(start, xyz, {n: np.asarray(chunk[n]) for n, _ in src.fields}, las=chunk.array)
 
 
 def _open_pcd(path: Path) -> CloudSource:

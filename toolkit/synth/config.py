@@ -88,6 +88,10 @@ class SynthConfig(BaseModel):
         0.02, ge=0, le=0.5, description="street points replaced by gross outliers"
     )
     chunk_route_m: float = Field(400.0, gt=10, description="route length processed per streaming chunk (m)")
+    street_density_factor: int = Field(
+        1, ge=1, description="street points per MVS point: extra samples of the same surface "
+        "(>1: street/cloud.laz, truth for the first sample of each only)"
+    )
 
     # --- drift and global transform ----------------------------------------------------------
     heading_walk_deg: float = Field(0.8, ge=0, description="heading random walk, deg per sqrt(100 m)")

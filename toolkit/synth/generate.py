@@ -49,7 +49,10 @@ def generate_from_city(path: Path, seed: int, out: Path, **overrides: Any) -> Pa
     )
 
 
-_STREAMS = ("city", "route", "capture", "drift", "sparse", "gps", "dsm", "ortho", "labels", "footprints", "dem")
+_STREAMS = (
+    "city", "route", "capture", "drift", "sparse", "gps", "dsm", "ortho", "labels", "footprints", "dem",
+    "density",
+)
 
 
 def _rng(seed: int, stream: str) -> np.random.Generator:
@@ -90,6 +93,17 @@ SCENE_FILES = {
 }
 
 
+def scene_files(cfg: SynthConfig) -> dict:
+    """SCENE_FILES, with street/cloud.laz and truth/street_rows.npy when street_density_factor > 1."""
+    if cfg.street_density_factor == 1:
+        return SCENE_FILES
+    return {
+        **SCENE_FILES,
+        "street": {**SCENE_FILES["street"], "cloud": "street/cloud.laz"},
+        "truth": {**SCENE_FILES["truth"], "street_rows": "truth/street_rows.npy"},
+    }
+
+
 def build_scene(world: World, cfg: SynthConfig, seed: int, out: Path, name: str, source: dict) -> Path:
     from toolkit.scene import write_manifest
     from toolkit.synth import overview_writer, street_writer
@@ -108,14 +122,14 @@ def build_scene(world: World, cfg: SynthConfig, seed: int, out: Path, name: str,
         )
     with timed("street capture and truth"):
         st = street_writer.write_street(
-            world, track, cfg, tmp, ov, {s: _rng(seed, s) for s in ("capture", "drift", "sparse", "gps")}
+            world, track, cfg, tmp, ov, {s: _rng(seed, s) for s in ("capture", "drift", "sparse", "gps", "density")}
         )
     stats = _stats(world, track, ov, st)
     write_manifest(
         tmp,
         name,
         cfg.crs,
-        SCENE_FILES,
+        scene_files(cfg),
         extra={
             "synth": {
                 "generator": "crossview synth",
@@ -145,6 +159,7 @@ def _stats(world: World, track, ov, st) -> dict:
         "overview_size_px": [ov.grid.width, ov.grid.height],
         "sparse_points": st.n_sparse,
         "observations": st.n_obs,
+        **({"street_truth_rows": st.n_truth} if st.n_truth != st.n_points else {}),
     }
 
 

@@ -23,6 +23,11 @@ class StreetChunk:
     camera: np.ndarray  # (N,) int32 index of the camera whose pose carries the point's drift
     surface: np.ndarray  # (M,3) noise-free façade/ground hits (clutter excluded), for truth/lidar.ply
     surface_labels: np.ndarray  # (M,)
+    # what street_density_factor > 1 needs to sample the same surface again (row for row with points)
+    hits: np.ndarray  # (N,3) noise-free local hit point of each point's ray
+    normals: np.ndarray  # (N,3) float32 unit normal of the surface hit
+    sigma: np.ndarray  # (N,) the MVS noise sigma the point got (noise_sigma of its depth)
+    outlier: np.ndarray  # (N,) bool: replaced by a gross outlier
 
 
 def intrinsics(cfg: SynthConfig) -> tuple[float, float, float]:
@@ -92,11 +97,18 @@ def _ray_dirs(
     return d_cam, d_world
 
 
+def noise_sigma(depth: np.ndarray, cfg: SynthConfig) -> np.ndarray:
+    """MVS noise sigma (m, per axis) of a point seen at ``depth``: ``noise_m`` at 10 m, linear in depth."""
+    return cfg.noise_m * np.maximum(depth / 10.0, 0.3)
+
+
 def _with_noise(pts: np.ndarray, dirs: np.ndarray, depth: np.ndarray, labels: np.ndarray, cfg: SynthConfig,
-                rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Range-dependent noise, and outliers spread along their rays (labelled clutter)."""
-    sigma = cfg.noise_m * np.maximum(depth / 10.0, 0.3)
+                rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Range-dependent noise, and outliers spread along their rays (labelled clutter); also the
+    outlier mask."""
+    sigma = noise_sigma(depth, cfg)
     noisy = pts + rng.normal(0, 1, pts.shape) * sigma[:, None]
+    outlier = np.zeros(len(noisy), bool)
     n_out = int(round(cfg.outlier_fraction * len(noisy)))
     if n_out:
         o = np.sort(rng.choice(len(noisy), n_out, replace=False))
@@ -105,7 +117,8 @@ def _with_noise(pts: np.ndarray, dirs: np.ndarray, depth: np.ndarray, labels: np
         noisy[o] = pts[o] + dirs[o] * along[:, None] + scatter
         labels = labels.copy()
         labels[o] = LABEL_CLUTTER
-    return noisy, labels
+        outlier[o] = True
+    return noisy, labels, outlier
 
 
 def capture_chunk(
@@ -176,13 +189,16 @@ def capture_chunk(
 
     keep = density(surface)
     pts, labels, colors, cap_of = surface[keep], labels[keep], colors[keep], cap_of[keep]
-    dirs, dep = dirs_all[keep], depth[keep]
+    dirs, dep, hit_normals = dirs_all[keep], depth[keep], normals[idx[keep]]
     stride = max(1, int(round(cfg.capture_step_m / cfg.camera_step_m)))
     camera = np.minimum(cap_of + rng.integers(0, stride, len(cap_of)), len(track) - 1).astype(np.int32)
 
-    noisy, labels = _with_noise(pts, dirs, dep, labels, cfg, rng)
+    noisy, labels, outlier = _with_noise(pts, dirs, dep, labels, cfg, rng)
 
     clean = ~np.isin(mesh.kind[prim], [CROWN, TRUNK, CAR, POLE])
     surf = surface[clean]
     lk = lidar_density(surf)
-    return StreetChunk(noisy, labels.astype(np.int32), colors, camera, surf[lk], mesh.label[prim[clean][lk]])
+    return StreetChunk(
+        noisy, labels.astype(np.int32), colors, camera, surf[lk], mesh.label[prim[clean][lk]],
+        pts, hit_normals, noise_sigma(dep, cfg), outlier,
+    )

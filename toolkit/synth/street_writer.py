@@ -1,6 +1,13 @@
 """Write the street-view products and their truth, streaming the cloud chunk by chunk:
 street/cloud.ply, street/sparse/, street/gps.csv, truth/street_points.npy, truth/street_labels.npy,
-truth/drift.npz, truth/cameras.txt and truth/lidar.ply."""
+truth/drift.npz, truth/cameras.txt and truth/lidar.ply.
+
+With ``street_density_factor`` K > 1 (``toolkit.synth.density``) the cloud is street/cloud.laz, K rows
+per MVS point, and the truth covers the first row of each only: truth/street_points.npy,
+truth/street_labels.npy and truth/drift.npz's ``camera_index`` and ``sparse_point_index`` are the
+K = 1 scene's arrays (M truth rows), and truth/street_rows.npy (M,) int64 holds the cloud row of each
+truth row, i*K. ``sparse_point_index`` indexes the truth rows; a COLMAP point's id is its cloud row + 1
+(street_rows[sparse_point_index] + 1). No array of the K·M cloud rows is written besides the LAZ."""
 
 from __future__ import annotations
 
@@ -34,6 +41,7 @@ class StreetResult:
     n_obs: int
     preview_drifted: np.ndarray  # (M,2) street points with the global transform undone (drift kept)
     preview_true: np.ndarray  # (M,2) the same points' true positions
+    n_truth: int = 0  # rows of the truth arrays (n_points / street_density_factor)
 
 
 def write_street(world: World, track: Track, cfg: SynthConfig, root: Path, ov, rngs: dict) -> StreetResult:
@@ -55,6 +63,13 @@ def write_street(world: World, track: Track, cfg: SynthConfig, root: Path, ov, r
     every = max(1, expected // PREVIEW_POINTS)
     from toolkit.synth.timing import timed
 
+    k = int(cfg.street_density_factor)
+    dense = None
+    if k > 1:
+        from toolkit.synth.density import DenseCloudWriter
+
+        dense = DenseCloudWriter(root / "street/cloud.laz", drift, cfg, origin3, rngs["density"])
+        s_rows = RowStream(tmpdir, "rows", np.int64)
     for caps in chunks(track, cfg):
         with timed(f"  capture {len(caps)} positions"):
             ch: StreetChunk = capture_chunk(caster, track, caps, cfg, rngs["capture"], density, lidar_density)
@@ -62,6 +77,10 @@ def write_street(world: World, track: Track, cfg: SynthConfig, root: Path, ov, r
         ch.colors[ground] = cover_colors(ov.cover, ov.grid, world.origin, ch.points[ground, :2])
         scene_pts = ch.points + origin3
         street = drift.apply(scene_pts, ch.camera)
+        if dense is not None:
+            with timed(f"  densify x{k}: {len(street) * k:,} rows"):
+                s_rows.append((s_true.rows + np.arange(len(street), dtype=np.int64)) * k)
+                dense.write(ch, street)
         s_cloud.append(ply_records(street, ch.colors))
         s_true.append(scene_pts)
         s_label.append(ch.labels)
@@ -71,7 +90,14 @@ def write_street(world: World, track: Track, cfg: SynthConfig, root: Path, ov, r
         prev_d.append(((street[sel] / drift.global_scale - drift.global_translation) @ drift.global_rotation)[:, :2])
         prev_t.append(scene_pts[sel, :2])
     n = s_true.rows
-    finish_ply(s_cloud, root / "street/cloud.ply", with_colors=True)
+    if dense is None:
+        finish_ply(s_cloud, root / "street/cloud.ply", with_colors=True)
+        cloud = read_ply_body(root / "street/cloud.ply", ply_record_dtype(True))
+    else:
+        dense.close()
+        s_rows.finish_npy(root / "truth/street_rows.npy")
+        s_cloud.close()  # the K = 1 cloud (rows i*K before quantisation), for the COLMAP points
+        cloud = np.memmap(s_cloud.path, dtype=ply_record_dtype(True), mode="r")
     s_true.finish_npy(root / "truth/street_points.npy")
     s_label.finish_npy(root / "truth/street_labels.npy")
     s_cam.finish_npy(tmpdir / "camera.npy")
@@ -79,8 +105,9 @@ def write_street(world: World, track: Track, cfg: SynthConfig, root: Path, ov, r
 
     with timed("  colmap model"):
         n_sparse, n_obs, sparse_rows = _write_colmap(
-            root, track, centres, drift, camera_of, cfg, rngs["sparse"], n
+            root, track, centres, drift, camera_of, cfg, rngs["sparse"], cloud
         )
+    del cloud
     save_npz(
         root / "truth/drift.npz",
         {**drift.arrays(), "camera_index": camera_of, "sparse_point_index": sparse_rows.astype(np.int64)},
@@ -89,7 +116,7 @@ def write_street(world: World, track: Track, cfg: SynthConfig, root: Path, ov, r
     with timed("  lidar"):
         _write_lidar(root / "truth/lidar.ply", world, track, cfg, lidar_parts, origin3)
     shutil.rmtree(tmpdir)
-    return StreetResult(n, n_sparse, n_obs, np.concatenate(prev_d), np.concatenate(prev_t))
+    return StreetResult(n * k, n_sparse, n_obs, np.concatenate(prev_d), np.concatenate(prev_t), n)
 
 
 def _expected_points(track: Track, cfg: SynthConfig) -> int:
@@ -112,11 +139,12 @@ def _write_colmap(
     camera_of: np.ndarray,
     cfg: SynthConfig,
     rng: np.random.Generator,
-    n: int,
+    cloud: np.ndarray,
 ) -> tuple[int, int, np.ndarray]:
+    """The COLMAP model of ``cfg.sparse_points`` truth rows; ``cloud``: the K = 1 street records.
+    Returns (points, observations, the truth rows of the points)."""
     truth = np.load(root / "truth/street_points.npy", mmap_mode="r")
     labels = np.load(root / "truth/street_labels.npy", mmap_mode="r")
-    cloud = read_ply_body(root / "street/cloud.ply", ply_record_dtype(True))
     pool = np.flatnonzero(np.asarray(labels) != LABEL_CLUTTER)  # feature tracks rarely survive on outliers
     rows = np.sort(rng.choice(pool, min(cfg.sparse_points, len(pool)), replace=False)) if len(pool) else pool
     obs, kept = colmap_model.observe(np.asarray(truth[rows]), camera_of[rows], centres, track.R_c2w, cfg, rng)
@@ -124,7 +152,7 @@ def _write_colmap(
     rec = cloud[rows]
     xyz = np.column_stack([rec["x"], rec["y"], rec["z"]])
     rgb = np.column_stack([rec["red"], rec["green"], rec["blue"]])
-    ids = rows + 1  # COLMAP point id = street point row + 1
+    ids = rows * int(cfg.street_density_factor) + 1  # COLMAP point id = street cloud row + 1
     R_s, t_s = drift.street_poses(track.R_c2w)
     write_model(colmap_model.sparse_model(cfg, R_s, t_s, ids, xyz, rgb, obs), root / "street/sparse")
     R_true = np.transpose(track.R_c2w, (0, 2, 1))

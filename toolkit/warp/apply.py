@@ -163,5 +163,5 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, capture: 
         R = np.einsum("cab,cdb->cad", model.R, Rb)          # R_wc · R̄ᵀ
         t = -np.einsum("cab,cb->ca", R, pos)
     return Registration(points=moved, image_names=names, R=R, t=t, point_segment=anchors.astype(np.int64, copy=False),
-                        camera_spread_m=spread,
+                        camera_spread_m=spread, rows=capture.rows,
                         warp=warp.with_source(pts, anchors).for_input_frame(capture.scale.value))

@@ -119,6 +119,16 @@ class PointWarp:
             raise ValueError("this warp has no carrier source (the run's street points)")
         return self.source.carriers(self._metric(points), self.origin)
 
+    def move(self, points: np.ndarray) -> tuple[PointMaps, np.ndarray, np.ndarray]:
+        """Points of any cloud of the street frame: (their maps, carriers (n,), distance (n,) m to the
+        run's street point both carrier and capture camera come from; one nearest-point search)."""
+        if self.source is None:
+            raise ValueError("this warp has no carrier source (the run's street points)")
+        dist, nn = self.source.nearest(self._metric(points), self.origin)
+        carriers = self.source.segment[nn].astype(np.int64)
+        cameras = self.source.camera[nn].astype(np.int64) if self.cameras is not None else None
+        return self.maps(points, carriers, cameras=cameras), carriers, dist
+
     def for_input_frame(self, street_scale: float) -> PointWarp:
         """This warp taking points in the street frame's own units."""
         from dataclasses import replace

@@ -1,0 +1,200 @@
+"""Chunked passes over a street cloud on disk, in input order (docs/out_of_core.md).
+
+A street cloud with more points than ``StreamSettings.max_points`` is never held whole: the run
+analyses every k-th point (``thinned_points``: the *analysis cloud*, k = ⌈N / max_points⌉), and the
+per-point passes over all N points (the registered clouds, the truth subset's errors, ``crossview
+apply``) read, move and write it a chunk at a time. A chunk is a ``Span`` of rows; a pass is a
+function of one span, run here in this process, or as a Dask computation on a ``LocalCluster``
+(``workers``) or a user's scheduler (``--scheduler``), with at most ``WINDOW`` spans per worker in
+flight and the results handed back in input order, so the outputs are the same bytes either way.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections import deque
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from toolkit.io.attributes import CloudChunk, CloudSource, open_cloud
+
+_CLIENT: list[Any] = []  # the client of the run in progress (``use_client``), read by its streamed passes
+WINDOW = 2  # spans in flight per worker: the next one is ready when one finishes, memory stays bounded
+
+
+class StreamSettings(BaseModel):
+    """The recipe's ``stream:`` section."""
+
+    model_config = ConfigDict(extra="forbid")
+    max_points: int = Field(8_000_000, ge=10_000, description="street clouds with more points are analysed on every k-th point and streamed")
+    chunk_points: int = Field(2_000_000, ge=1_000, description="points per chunk of a streamed pass")
+    workers: int = Field(0, ge=0, description="LocalCluster worker processes for streamed passes (0: this process)")
+
+
+@dataclass(frozen=True)
+class Span:
+    """Rows ``start`` … ``start + count − 1`` of a cloud."""
+
+    start: int
+    count: int
+
+
+def spans(count: int, size: int) -> list[Span]:
+    return [Span(s, min(size, count - s)) for s in range(0, count, size)]
+
+
+def thinning_step(count: int, max_points: int) -> int:
+    """k: the analysis cloud is every k-th point (1: the whole cloud)."""
+    return max(1, math.ceil(count / max_points))
+
+
+def read_span(source: CloudSource, span: Span) -> CloudChunk:
+    """One span of ``source``: PLY through a memory map, LAS/LAZ by seeking (LAZ from its chunk table)."""
+    return source.read(span.start, span.count)
+
+
+@contextmanager
+def dask_client(scheduler: str | None = None, workers: int = 0):
+    """A ``distributed.Client`` on ``scheduler`` (checked: ``toolkit.batch_client``), else on a new
+    ``LocalCluster`` of ``workers`` single-threaded processes; None when both are unset."""
+    if not scheduler and workers <= 0:
+        yield None
+        return
+    if scheduler:
+        from toolkit.batch_client import connect_scheduler
+
+        client = connect_scheduler(scheduler)
+        try:
+            yield client
+        finally:
+            client.close()
+        return
+    import os
+
+    import dask
+    from distributed import Client, LocalCluster
+
+    from toolkit.batch import _restore_environ, worker_config
+
+    environ = dict(os.environ)  # the nanny writes the workers' environment into this process's (see batch)
+    with dask.config.set(worker_config()):
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                               silence_logs=40)
+    _restore_environ(environ)
+    try:
+        with Client(cluster) as client:
+            yield client
+    finally:
+        cluster.close()
+
+
+@contextmanager
+def use_client(scheduler: str | None = None, workers: int = 0):
+    """``dask_client`` made the one the streamed passes of this process use until the block ends."""
+    with dask_client(scheduler, workers) as client:
+        _CLIENT.append(client)
+        try:
+            yield client
+        finally:
+            _CLIENT.pop()
+
+
+def active_client() -> Any:
+    """The client of ``use_client`` (None: the passes run in this process)."""
+    return _CLIENT[-1] if _CLIENT else None
+
+
+def map_spans(fn: Callable[..., Any], parts: list[Any], client: Any = None, shared: Any = None) -> Iterator[Any]:
+    """``fn(part, shared)`` for each part (a ``Span``, or what ``fn`` takes), yielded in order. With a
+    ``client`` the calls run on its workers (``shared`` sent to each once), at most ``WINDOW`` per
+    worker at a time."""
+    if client is None:
+        for span in parts:
+            yield fn(span, shared)
+        return
+    held = client.scatter(shared, broadcast=True, hash=False) if shared is not None else None
+    width = WINDOW * max(1, len(client.scheduler_info().get("workers", {})))
+    pending: deque = deque()
+    todo = iter(parts)
+    for span in todo:
+        pending.append(client.submit(fn, span, held, pure=False))
+        if len(pending) >= width:
+            break
+    while pending:
+        result = pending.popleft().result()
+        nxt = next(todo, None)
+        if nxt is not None:
+            pending.append(client.submit(fn, nxt, held, pure=False))
+        yield result
+
+
+# --- the analysis cloud ---------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class _Thin:
+    path: Path
+    step: int
+
+    def __call__(self, span: Span, _: Any = None) -> np.ndarray:
+        chunk = read_span(open_cloud(self.path), span)
+        return np.ascontiguousarray(chunk.xyz[(-span.start) % self.step::self.step])
+
+
+def thinned_points(path: Path, step: int, chunk_points: int, client: Any = None) -> np.ndarray:
+    """(⌈N/step⌉, 3) float64: rows 0, step, 2·step, … of the cloud at ``path``, read a chunk at a time."""
+    source = open_cloud(path)
+    size = max(step, chunk_points // step * step)
+    parts = list(map_spans(_Thin(Path(path), step), spans(source.count, size), client))
+    return np.concatenate(parts) if parts else np.zeros((0, 3))
+
+
+def analysis_points(path: Path, step: int, chunk_points: int, street_scale: float = 1.0) -> np.ndarray:
+    """The analysis cloud in metres (divided by the street scale), read-only, kept for the run's stages."""
+    return _analysis(Path(path), Path(path).stat().st_mtime_ns, step, chunk_points, float(street_scale))
+
+
+@functools.lru_cache(maxsize=1)
+def _analysis(path: Path, mtime: int, step: int, chunk_points: int, street_scale: float) -> np.ndarray:
+    pts = _thinned(path, mtime, step, chunk_points)
+    if street_scale != 1.0:
+        pts = pts / street_scale
+    pts.setflags(write=False)
+    return pts
+
+
+@functools.lru_cache(maxsize=1)
+def _thinned(path: Path, mtime: int, step: int, chunk_points: int) -> np.ndarray:
+    return thinned_points(path, step, chunk_points, active_client())
+
+
+# --- moved rows (the truth subset of a test scene) ------------------------------------------------
+
+@dataclass(frozen=True)
+class _MoveRows:
+    path: Path
+
+    def __call__(self, part: tuple[Span, np.ndarray], warp: Any) -> np.ndarray:
+        span, rows = part
+        chunk = read_span(open_cloud(self.path), span)
+        xyz = chunk.xyz[rows - span.start]
+        return warp.move(xyz)[0].apply(xyz)
+
+
+def moved_rows(path: Path, rows: np.ndarray, warp: Any, chunk_points: int, client: Any = None) -> np.ndarray:
+    """(len(rows), 3): input rows ``rows`` (sorted) of the cloud at ``path`` moved by ``warp`` (a
+    ``PointWarp`` taking input street-frame units), read a chunk at a time."""
+    rows = np.asarray(rows, np.int64)
+    count = open_cloud(path).count
+    parts = []
+    for span in spans(count, chunk_points):
+        lo, hi = np.searchsorted(rows, [span.start, span.start + span.count])
+        if hi > lo:
+            parts.append((span, rows[lo:hi]))
+    out = list(map_spans(_MoveRows(Path(path)), parts, client, shared=warp))
+    return np.concatenate(out) if out else np.zeros((0, 3))
