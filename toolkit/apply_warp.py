@@ -47,12 +47,20 @@ def register(subparsers) -> None:
     p.add_argument("--out", type=Path, help="output file (default RUN_DIR/<name>.registered.laz, "
                                             "or .ply/.obj for a mesh)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    p.add_argument("--scheduler", help="Dask scheduler whose workers move the chunks, e.g. tcp://host:8786")
+    p.add_argument("--workers", type=int, default=0, help="LocalCluster worker processes that move the chunks "
+                   "(default 0: this process)")
     p.add_argument("-q", "--quiet", action="store_true", help="no summary line")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    done = apply_run(args.run_dir, args.cloud, args.out, args.overwrite)
+    from toolkit.stream import use_client
+
+    if args.workers < 0:
+        raise CrossviewError(f"--workers {args.workers}: must be 0 or more")
+    with use_client(args.scheduler, args.workers):
+        done = apply_run(args.run_dir, args.cloud, args.out, args.overwrite)
     if not args.quiet:
         what = "vertices" if done.mesh else "points"
         print(f"{done.out}: {done.count} {what} moved in {done.seconds:.1f} s "
@@ -116,8 +124,11 @@ def _write(stored: StoredWarp, cloud: Path, source: CloudSource | None, tmp: Pat
         if mesh:
             return _write_ply_mesh(stored, source, mover, tmp, chunk_points)
         suffix = tmp.suffix.lower()
+        from toolkit.stream import active_client
+
         return export_cloud(source, mover, stored.crs, grid, laz=tmp if suffix in (".laz", ".las") else None,
-                            ply=tmp if suffix == ".ply" else None, chunk_points=chunk_points)
+                            ply=tmp if suffix == ".ply" else None, chunk_points=chunk_points,
+                            client=active_client())
 
 
 def _write_ply_mesh(stored: StoredWarp, source: CloudSource, mover, tmp: Path, chunk_points: int) -> CarrierStats:

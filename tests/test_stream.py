@@ -1,0 +1,95 @@
+"""Large street clouds (toolkit.stream): a run that analyses every k-th point still writes every input
+point, in order, moved as ``crossview apply`` moves them; a 2-worker LocalCluster gives the same bytes."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.registered_runs import RECIPE, laz_scene, tiny_run, workdir
+from toolkit.errors import RecipeError
+
+
+def _digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _thin_run(scene: Path, name: str, *extra: str):
+    from toolkit.runner import run_recipe
+
+    res = run_recipe(RECIPE, scene=scene, out=workdir() / name, rerun=False,
+                     overrides=["stream.max_points=20000", "stream.chunk_points=15000", *extra])
+    return res
+
+
+def test_read_gives_the_rows_of_the_chunk_iterator(tmp_path):
+    from toolkit.io.attributes import open_cloud
+
+    for path in (laz_scene() / "street/cloud.laz", tiny_run("ply")[1] / "street/cloud.ply"):
+        src = open_cloud(path)
+        whole = next(src.chunks(src.count))
+        part = src.read(1234, 777)
+        assert part.start == 1234 and np.array_equal(part.xyz, whole.xyz[1234:2011])
+        for name in src.names:
+            assert np.array_equal(part.values[name], whole.values[name][1234:2011]), name
+
+
+def test_a_thinned_run_writes_every_point_in_order_as_apply_moves_them(tmp_path):
+    import laspy
+
+    from toolkit.apply_warp import apply_run
+    from toolkit.io.attributes import open_cloud
+
+    full, scene = tiny_run("laz")
+    thin = _thin_run(scene, "thin-laz")
+    n = open_cloud(scene / "street/cloud.laz").count
+    step = -(-n // 20000)
+    reg = thin.results.registration
+    assert step > 1 and len(reg.points) == len(range(0, n, step))
+    assert np.array_equal(reg.rows, np.arange(0, n, step))
+    out = laspy.read(thin.out_dir / "registered.laz")
+    src = laspy.read(scene / "street/cloud.laz")
+    assert len(out.points) == n
+    # every input attribute in input order; the analysis rows where the run put them
+    assert np.array_equal(out.intensity, src.intensity) and np.array_equal(out.reflectance, src.reflectance)
+    xyz = np.column_stack([out.x, out.y, out.z])
+    assert np.abs(xyz[reg.rows] - reg.points).max() < 0.001
+    again = apply_run(thin.out_dir, scene / "street/cloud.laz", tmp_path / "again.laz")
+    got = laspy.read(again.out)
+    assert np.array_equal(got.X, out.X) and np.array_equal(got.segment, out.segment)
+    # the truth errors cover every point, and stay close to those of the run that held the whole cloud
+    mine, whole = json.loads((thin.out_dir / "metrics.json").read_text()), full.results.metrics.values
+    assert mine["truth"]["error_3d"]["n"] == n
+    assert mine["truth"]["horizontal"]["median_m"] < max(1.5 * whole["truth"]["horizontal"]["median_m"], 0.2)
+
+
+def test_a_local_cluster_gives_the_same_bytes():
+    _, scene = tiny_run("laz")
+    here = _thin_run(scene, "thin-here")
+    there = _thin_run(scene, "thin-cluster", "stream.workers=2")
+    for name in ("registered.laz", "registered.ply", "warp.npz", "metrics.json", "transforms.json"):
+        assert _digest(here.out_dir / name) == _digest(there.out_dir / name), name
+
+
+def test_stream_settings_are_checked_with_the_recipe():
+    from toolkit.recipe import load_recipe
+
+    with pytest.raises(RecipeError, match="stream.max_point"):
+        load_recipe(RECIPE, ["stream.max_point=5"])
+    with pytest.raises(RecipeError, match="stream.chunk_points"):
+        load_recipe(RECIPE, ["stream.chunk_points=0"])
+
+
+def test_apply_through_a_local_cluster_gives_the_same_bytes(tmp_path):
+    from toolkit.cli import main
+
+    res, scene = tiny_run("laz")
+    cloud = scene / "street/cloud.laz"
+    assert main(["apply", str(res.out_dir), "--cloud", str(cloud), "--out", str(tmp_path / "here.laz"), "-q"]) == 0
+    assert main(["apply", str(res.out_dir), "--cloud", str(cloud), "--out", str(tmp_path / "there.laz"), "-q",
+                 "--workers", "2"]) == 0
+    assert _digest(tmp_path / "here.laz") == _digest(tmp_path / "there.laz")
