@@ -7,7 +7,7 @@ Modules: ``config`` (knobs, presets) · ``streets``/``city``/``clutter``/``mesh`
 procedural world) · ``realcity``/``openspace`` (CityJSON / OSM worlds, routes through open space) ·
 ``route`` (vehicle route and true cameras) · ``raycast`` (Open3D ray casting) · ``street`` (MVS-like
 capture) · ``drift`` · ``colmap_model`` · ``overview``/``footprints`` (over-view products) ·
-``overview_writer``/``street_writer``/``files`` (writing, streaming) · ``preview`` · ``generate``.
+``overview_writer``/``street_writer``/``density``/``files`` (writing, streaming) · ``preview`` · ``generate``.
 
 Truth of the street cloud
 -------------------------
@@ -26,6 +26,12 @@ ground, -2 clutter (trees, cars, poles) and outliers.
   (``street_scale``): the street frame.
 - ``camera_index`` (N,) int32: the camera k whose drift each street point carries.
 - ``sparse_point_index`` (P,) int64: street-point row of each COLMAP point (its id is row + 1).
+
+``street_density_factor`` K > 1 (``density``) writes each of the N MVS points as K consecutive rows
+of ``street/cloud.laz``: row i*K is point i of the K = 1 scene, rows i*K+1 … i*K+K-1 extra samples of
+its surface. The truth arrays above (``camera_index`` and ``sparse_point_index`` included) stay the
+K = 1 scene's, N rows, and ``truth/street_rows.npy`` (N,) int64 = i*K names the cloud row of each; a
+COLMAP point's id is street_rows[sparse_point_index] + 1.
 
 A street point with true position x and camera k is written as
 ``x_street = k (G_R (c'_k + s_k D_k (x - c_k)) + G_t)``; ``toolkit.synth.drift.Drift.apply`` / ``undo``
