@@ -43,7 +43,7 @@ def test_run_writes_outputs(tmp_path: Path, recipe: Path, mini_scene: Path):
     # FakeRefine moves the street centroid onto the over-view centroid: check row order is kept
     np.testing.assert_allclose(pts - pts.mean(0), src - src.mean(0), atol=1e-6)
     timings = json.loads((out / "timings.json").read_text())
-    assert set(timings) == {"overview", "street", "graph", "unary", "match", "refine", "warp"}
+    assert set(timings) == {"overview", "street", "graph", "unary", "match", "refine", "warp", "write_clouds"}
     assert not [p for p in tmp_path.iterdir() if ".partial" in p.name]
 
 

@@ -9,6 +9,7 @@ for ``apply``.
 
 from __future__ import annotations
 
+import logging
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
@@ -87,12 +88,26 @@ def moved_chunks(source: CloudSource, mover: Mover, chunk_points: int,
     and the file can be read from any row (not an ASCII PLY nor a cloud held in memory)."""
     seekable = source.kind == "las" or (source.kind == "ply" and source.ply.fmt != "ascii")
     if client is None or not seekable:
-        for chunk in source.chunks(chunk_points):
-            yield chunk, mover(chunk)
+        yield from _ahead(((chunk, mover(chunk)) for chunk in source.chunks(chunk_points)))
         return
     from toolkit.stream import map_spans, spans
 
     yield from map_spans(_ReadMove(source.path), spans(source.count, chunk_points), client, shared=mover)
+
+
+def _ahead(items: Iterator):
+    """``items`` with the next one made in a second thread while the caller handles this one (reading
+    and moving a chunk release the GIL for most of their time, as does writing the one before)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(1, "crossview-chunk") as pool:
+        pending = pool.submit(next, items, None)
+        while True:
+            item = pending.result()
+            if item is None:
+                return
+            pending = pool.submit(next, items, None)
+            yield item
 
 
 @dataclass(frozen=True)
@@ -185,6 +200,10 @@ def write_registered(out: Path, plan, outputs, warnings: list[str]) -> None:
                                  "warp step that stores its warp (warp.inverse_log)")
         source = capture.attributes()
         from toolkit.stream import active_client
+
+        logging.getLogger("crossview.export").info(
+            "%s: moving its %s points with the warp, %s at a time", capture.cloud_path, f"{source.count:,}",
+            f"{capture.chunk_points:,}")
 
         export_cloud(source, warp_mover(registration.warp, source.normals), scene.crs, grid,
                      laz=out / "registered.laz", ply=ply, chunk_points=capture.chunk_points, client=active_client())

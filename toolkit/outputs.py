@@ -100,7 +100,11 @@ def write_outputs(out: Path, plan, outputs: RunOutputs, timings: dict[str, float
     if outputs.registration is not None:
         from toolkit.export import write_registered
 
+        import time
+
+        t0 = time.perf_counter()
         write_registered(out, plan, outputs, warnings)
+        timings = {**timings, "write_clouds": time.perf_counter() - t0}
     rows = transforms_table(outputs)
     if rows:
         dump_json(out / "transforms.json", {"crs": plan.scene.crs, "segments": rows})

@@ -22,7 +22,7 @@ from typing import Any, Callable, Iterator
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from toolkit.io.attributes import CloudChunk, CloudSource, open_cloud
+from toolkit.io.attributes import open_cloud
 
 _CLIENT: list[Any] = []  # the client of the run in progress (``use_client``), read by its streamed passes
 WINDOW = 2  # spans in flight per worker: the next one is ready when one finishes, memory stays bounded
@@ -52,11 +52,6 @@ def spans(count: int, size: int) -> list[Span]:
 def thinning_step(count: int, max_points: int) -> int:
     """k: the analysis cloud is every k-th point (1: the whole cloud)."""
     return max(1, math.ceil(count / max_points))
-
-
-def read_span(source: CloudSource, span: Span) -> CloudChunk:
-    """One span of ``source``: PLY through a memory map, LAS/LAZ by seeking (LAZ from its chunk table)."""
-    return source.read(span.start, span.count)
 
 
 @contextmanager
@@ -142,8 +137,8 @@ class _Thin:
     step: int
 
     def __call__(self, span: Span, _: Any = None) -> np.ndarray:
-        chunk = read_span(open_cloud(self.path), span)
-        return np.ascontiguousarray(chunk.xyz[(-span.start) % self.step::self.step])
+        pick = slice((-span.start) % self.step, None, self.step)
+        return np.ascontiguousarray(open_cloud(self.path).read(span.start, span.count, pick).xyz)
 
 
 def thinned_points(path: Path, step: int, chunk_points: int, client: Any = None) -> np.ndarray:
@@ -181,8 +176,7 @@ class _MoveRows:
 
     def __call__(self, part: tuple[Span, np.ndarray], warp: Any) -> np.ndarray:
         span, rows = part
-        chunk = read_span(open_cloud(self.path), span)
-        xyz = chunk.xyz[rows - span.start]
+        xyz = open_cloud(self.path).read(span.start, span.count, rows - span.start).xyz
         return warp.move(xyz)[0].apply(xyz)
 
 

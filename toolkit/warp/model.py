@@ -25,6 +25,9 @@ from toolkit.warp.cells import levelled_xy
 from toolkit.warp.index import SegmentIndex
 
 
+NEAR_M = 0.5  # radius of the first, bounded nearest-point search (metres)
+
+
 @dataclass(frozen=True)
 class CarrierSource:
     """The run's street points and the segment each was moved with (the carrier rule above).
@@ -58,7 +61,13 @@ class CarrierSource:
 
     def nearest(self, points: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         q = relative_f32(points, origin).astype(np.float64)
-        return self.tree.query(q, workers=query_workers(len(q)))
+        # a bounded search first (most points have a street point within centimetres; −1/3 of the
+        # time on 151 M points), the exact nearest all the same; the rest searched without bound
+        dist, nn = self.tree.query(q, distance_upper_bound=NEAR_M, workers=query_workers(len(q)))
+        far = np.flatnonzero(~np.isfinite(dist))
+        if len(far):
+            dist[far], nn[far] = self.tree.query(q[far], workers=query_workers(len(far)))
+        return dist, nn
 
 
 def relative_f32(points: np.ndarray, origin: np.ndarray) -> np.ndarray:
