@@ -237,10 +237,11 @@ def _scaled_model(path: Path, mtime: float, scale: float) -> SparseModel:
                    points3d=np.asarray(model.points3d, np.float64) / scale)
 
 
-def load_array(scene: Scene, key: str) -> np.ndarray:
+def load_array(scene: Scene, key: str, mmap: bool = False) -> np.ndarray:
+    """A scene .npy; ``mmap``: memory-mapped read-only (read as it is used)."""
     p = need(scene, key, key)
     try:
-        return np.load(p, allow_pickle=False)
+        return np.load(p, allow_pickle=False, mmap_mode="r" if mmap else None)
     except Exception as exc:
         raise SceneError(f"{p}: cannot read .npy ({exc})") from exc
 

@@ -168,27 +168,32 @@ def _thinned(path: Path, mtime: int, step: int, chunk_points: int) -> np.ndarray
     return thinned_points(path, step, chunk_points, active_client())
 
 
-# --- moved rows (the truth subset of a test scene) ------------------------------------------------
+# --- errors of the truth rows (test scenes) --------------------------------------------------------
 
 @dataclass(frozen=True)
-class _MoveRows:
+class _RowErrors:
     path: Path
 
-    def __call__(self, part: tuple[Span, np.ndarray], warp: Any) -> np.ndarray:
-        span, rows = part
+    def __call__(self, part: tuple[Span, np.ndarray, np.ndarray], warp: Any) -> tuple[np.ndarray, np.ndarray]:
+        from toolkit.evaluation.metrics import point_errors
+
+        span, rows, truth = part
         xyz = open_cloud(self.path).read(span.start, span.count, rows - span.start).xyz
-        return warp.move(xyz)[0].apply(xyz)
+        return point_errors(warp.move(xyz)[0].apply(xyz), np.asarray(truth))
 
 
-def moved_rows(path: Path, rows: np.ndarray, warp: Any, chunk_points: int, client: Any = None) -> np.ndarray:
-    """(len(rows), 3): input rows ``rows`` (sorted) of the cloud at ``path`` moved by ``warp`` (a
-    ``PointWarp`` taking input street-frame units), read a chunk at a time."""
+def row_errors(path: Path, rows: np.ndarray, truth: np.ndarray, warp: Any, chunk_points: int,
+               client: Any = None) -> tuple[np.ndarray, np.ndarray]:
+    """(3D, horizontal) error of input rows ``rows`` (sorted) of the cloud at ``path`` moved by ``warp``
+    (a ``PointWarp`` taking input street-frame units) against ``truth`` (one row each; a memory map
+    is read a chunk at a time)."""
     rows = np.asarray(rows, np.int64)
-    count = open_cloud(path).count
     parts = []
-    for span in spans(count, chunk_points):
+    for span in spans(open_cloud(path).count, chunk_points):
         lo, hi = np.searchsorted(rows, [span.start, span.start + span.count])
         if hi > lo:
-            parts.append((span, rows[lo:hi]))
-    out = list(map_spans(_MoveRows(Path(path)), parts, client, shared=warp))
-    return np.concatenate(out) if out else np.zeros((0, 3))
+            parts.append((span, rows[lo:hi], truth[lo:hi]))
+    done = list(map_spans(_RowErrors(Path(path)), parts, client, shared=warp))
+    if not done:
+        return np.zeros(0), np.zeros(0)
+    return np.concatenate([d[0] for d in done]), np.concatenate([d[1] for d in done])

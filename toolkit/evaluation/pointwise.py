@@ -98,14 +98,15 @@ def truth_errors(registration: Registration, scene: Scene) -> PointErrors | None
     a large cloud (``Registration.rows``) has those rows moved by its warp a chunk at a time."""
     if not scene.has("truth_street_points"):
         return None
-    true_pts = load_array(scene, "truth_street_points")
+    true_pts = load_array(scene, "truth_street_points", mmap=registration.rows is not None)
     rows = truth_rows(scene, len(true_pts))
-    if registration.rows is not None:
-        from toolkit.stream import active_client, moved_rows
+    if registration.rows is not None:  # the truth rows moved and compared a chunk at a time
+        from toolkit.stream import active_client, row_errors
 
         wanted = np.arange(len(true_pts)) if rows is None else rows
-        moved = moved_rows(scene.files.street_cloud, wanted, registration.warp, CHUNK_POINTS, active_client())
-        return PointErrors(*M.point_errors(moved, true_pts), rows=wanted)
+        errors = row_errors(scene.files.street_cloud, wanted, true_pts, registration.warp, CHUNK_POINTS,
+                            active_client())
+        return PointErrors(*errors, rows=wanted)
     pts = registration.points if rows is None else np.asarray(registration.points)[rows]
     if true_pts.shape != pts.shape:
         raise SceneError(f"{scene.files.truth_street_points}: shape {true_pts.shape} does not match "
