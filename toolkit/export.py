@@ -59,9 +59,11 @@ class CarrierStats:
 
 
 def export_cloud(source: CloudSource, mover: Mover, crs: str, grid: LasGrid, laz: Path | None = None,
-                 ply: Path | None = None, chunk_points: int = CHUNK_POINTS, client: Any = None) -> CarrierStats:
+                 ply: Path | None = None, chunk_points: int = CHUNK_POINTS, client: Any = None,
+                 progress: Callable | None = None) -> CarrierStats:
     """Write ``source`` moved by ``mover`` to ``laz`` and/or ``ply`` (the chunks moved on ``client``'s
-    workers when given, ``toolkit.stream``; the same bytes either way)."""
+    workers when given, ``toolkit.stream``; the same bytes either way). ``progress``: an observer's
+    ``progress`` to show the chunks go by."""
     wkt, normals, seg = crs_wkt(crs), source.normals, segment_name(source.names)
     total, top = 0.0, 0.0
     with ExitStack() as stack:
@@ -69,7 +71,10 @@ def export_cloud(source: CloudSource, mover: Mover, crs: str, grid: LasGrid, laz
         ply_out = None
         if ply is not None:
             ply_out = stack.enter_context(PlyWriter(ply, source.count, ply_fields(source), (crs_comment(crs),)))
-        for chunk, moved in moved_chunks(source, mover, chunk_points, client):
+        pairs = moved_chunks(source, mover, chunk_points, client)
+        if progress is not None:
+            pairs = progress(pairs, total=-(-source.count // chunk_points), desc="writing the registered cloud")
+        for chunk, moved in pairs:
             values = turned_values(chunk, moved, normals, dict(source.fields))
             if las_out is not None:
                 las_out.write(chunk, moved.xyz, values, moved.segment)
@@ -179,7 +184,7 @@ def street_source(capture, registration) -> CloudSource:
     return source
 
 
-def write_registered(out: Path, plan, outputs, warnings: list[str]) -> None:
+def write_registered(out: Path, plan, outputs, warnings: list[str], progress: Callable | None = None) -> None:
     """registered.laz (always), registered.ply (unless ``outputs: {ply: false}``) and warp.npz of a
     run's ``RunOutputs``."""
     from toolkit.warp.store import FILE_NAME, StoredWarp, save_warp
@@ -196,7 +201,7 @@ def write_registered(out: Path, plan, outputs, warnings: list[str]) -> None:
     if capture is not None and capture.step > 1:
         # the run analysed every k-th point: every input point is moved as ``crossview apply`` does
         if registration.warp is None or registration.warp.source is None:
-            raise CrossviewError(f"{capture.cloud_path}: a cloud analysed on every {capture.step}-th point needs a "
+            raise CrossviewError(f"{capture.cloud_path}: a cloud analysed on one point in {capture.step} needs a "
                                  "warp step that stores its warp (warp.inverse_log)")
         source = capture.attributes()
         from toolkit.stream import active_client
@@ -206,7 +211,8 @@ def write_registered(out: Path, plan, outputs, warnings: list[str]) -> None:
             f"{capture.chunk_points:,}")
 
         export_cloud(source, warp_mover(registration.warp, source.normals), scene.crs, grid,
-                     laz=out / "registered.laz", ply=ply, chunk_points=capture.chunk_points, client=active_client())
+                     laz=out / "registered.laz", ply=ply, chunk_points=capture.chunk_points, client=active_client(),
+                     progress=progress)
     else:
         source = street_source(capture, registration)
         mover = registration_mover(registration, outputs.transforms, source.normals)

@@ -81,9 +81,10 @@ def coverage(outputs: RunOutputs) -> dict[str, Any] | None:
 
 
 def write_outputs(out: Path, plan, outputs: RunOutputs, timings: dict[str, float],
-                  warnings: list[str], assessment=None, notes: list[str] = ()) -> None:
+                  warnings: list[str], assessment=None, notes: list[str] = (), progress=None) -> None:
     """``assessment``: the run's ``toolkit.status.Assessment`` (assessed here when None); ``notes``:
-    what the readers noted (e.g. a raster resampled onto the scene grid)."""
+    what the readers noted (e.g. a raster resampled onto the scene grid); ``progress``: an observer's
+    ``progress``, shown while a large cloud is written a chunk at a time."""
     from toolkit.status import assess
 
     if assessment is None:
@@ -103,7 +104,7 @@ def write_outputs(out: Path, plan, outputs: RunOutputs, timings: dict[str, float
         import time
 
         t0 = time.perf_counter()
-        write_registered(out, plan, outputs, warnings)
+        write_registered(out, plan, outputs, warnings, progress)
         timings = {**timings, "write_clouds": time.perf_counter() - t0}
     rows = transforms_table(outputs)
     if rows:

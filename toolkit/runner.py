@@ -122,8 +122,8 @@ def street_capture(scene: Scene, recipe: Recipe) -> StreetCapture:
 
     step = thinning_step(open_cloud(scene.files.street_cloud).count, settings.max_points)
     if step > 1:
-        log.info("%s: more than %d points: the analysis takes every %d-th point, the registered clouds are "
-                 "written a chunk at a time", scene.files.street_cloud, settings.max_points, step)
+        log.info("%s: more than stream.max_points (%s) points: the analysis takes one point in %d, the registered "
+                 "clouds are written a chunk at a time", scene.files.street_cloud, f"{settings.max_points:,}", step)
     return StreetCapture(scene, step, settings.chunk_points)
 
 
@@ -372,7 +372,7 @@ def _run_plan(plan: Plan, recipe: Recipe, out_dir: Path, overwrite: bool, observ
             rerun_obs = None
         warnings = list(getattr(obs, "warnings", [])) + logged.warnings
         assessment = assess(outputs)
-        write_outputs(tmp, plan, outputs, timings, warnings, assessment, notes=logged.notes)
+        write_outputs(tmp, plan, outputs, timings, warnings, assessment, notes=logged.notes, progress=obs.progress)
         if out_dir.exists():
             shutil.rmtree(out_dir)
         tmp.rename(out_dir)
