@@ -270,6 +270,9 @@ def _execute(plan: Plan, obs: Observer, overlap: bool,
             if any(s.name == "street" for s, _ in pairs) and not plan.capture.scale.settled:
                 outputs, timings["scale"] = _settle_scale(plan, outputs, obs)
                 plan = replace(plan, scene=outputs.scene, capture=outputs.capture)
+            if outputs.costs is not None and not any("costs" in KIND_INPUTS[s.name] + KIND_OPTIONAL.get(s.name, ())
+                                                     for s, _ in steps[i:]):
+                outputs = replace(outputs, costs=outputs.costs.released())
             if nothing_registered(outputs, steps[i:]):
                 obs.warn("no street segment was registered: the steps after refine are skipped and the run "
                          "is assessed as it stands")

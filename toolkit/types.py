@@ -305,6 +305,13 @@ class DataCosts:
     prior: str | None = None
     prior_figures: Mapping[str, Any] | None = None
 
+    def released(self) -> DataCosts:
+        """These costs without their (E,L) arrays (1.2 GB on the district scene): what the run keeps once
+        no later step needs them, for its self-assessment (prior, prior_figures)."""
+        from dataclasses import replace
+
+        return replace(self, cost=np.zeros((0, 0)), theta_rad=np.zeros((0, 0)), t=np.zeros((0, 0, 2)))
+
 
 @dataclass(frozen=True)
 class Matches:
