@@ -93,3 +93,18 @@ def test_apply_through_a_local_cluster_gives_the_same_bytes(tmp_path):
     assert main(["apply", str(res.out_dir), "--cloud", str(cloud), "--out", str(tmp_path / "there.laz"), "-q",
                  "--workers", "2"]) == 0
     assert _digest(tmp_path / "here.laz") == _digest(tmp_path / "there.laz")
+
+
+def test_thinned_points_are_every_kth_row_of_any_format(tmp_path):
+    from toolkit.io.cloud import write_ply
+    from toolkit.stream import thinned_points
+
+    xyz = np.random.default_rng(3).uniform(-50, 50, (10_007, 3)).round(3)
+    ascii_ply = tmp_path / "a.ply"
+    body = "\n".join(" ".join(f"{v:.3f}" for v in row) for row in xyz)
+    ascii_ply.write_text(f"ply\nformat ascii 1.0\nelement vertex {len(xyz)}\nproperty double x\nproperty double y\n"
+                         f"property double z\nend_header\n{body}\n")
+    write_ply(tmp_path / "b.ply", xyz)
+    for path in (ascii_ply, tmp_path / "b.ply"):
+        for step, chunk in ((1, 4096), (3, 1000), (7, 50)):
+            np.testing.assert_array_equal(thinned_points(path, step, chunk), xyz[::step], err_msg=f"{path} {step}")

@@ -91,8 +91,7 @@ def moved_chunks(source: CloudSource, mover: Mover, chunk_points: int,
                  client: Any = None) -> Iterator[tuple[CloudChunk, Moved]]:
     """(chunk, moved chunk) in input order; read and moved on the client's workers when there is one
     and the file can be read from any row (not an ASCII PLY nor a cloud held in memory)."""
-    seekable = source.kind == "las" or (source.kind == "ply" and source.ply.fmt != "ascii")
-    if client is None or not seekable:
+    if client is None or not source.seekable:
         yield from _ahead(((chunk, mover(chunk)) for chunk in source.chunks(chunk_points)))
         return
     from toolkit.stream import map_spans, spans

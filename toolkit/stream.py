@@ -145,7 +145,10 @@ def thinned_points(path: Path, step: int, chunk_points: int, client: Any = None)
     """(⌈N/step⌉, 3) float64: rows 0, step, 2·step, … of the cloud at ``path``, read a chunk at a time."""
     source = open_cloud(path)
     size = max(step, chunk_points // step * step)
-    parts = list(map_spans(_Thin(Path(path), step), spans(source.count, size), client))
+    if not source.seekable:  # an ASCII PLY or a PCD: read once, in order, here
+        parts = [chunk.xyz[(-chunk.start) % step::step] for chunk in source.chunks(size)]
+    else:
+        parts = list(map_spans(_Thin(Path(path), step), spans(source.count, size), client))
     return np.concatenate(parts) if parts else np.zeros((0, 3))
 
 
@@ -187,13 +190,23 @@ def row_errors(path: Path, rows: np.ndarray, truth: np.ndarray, warp: Any, chunk
     """(3D, horizontal) error of input rows ``rows`` (sorted) of the cloud at ``path`` moved by ``warp``
     (a ``PointWarp`` taking input street-frame units) against ``truth`` (one row each; a memory map
     is read a chunk at a time)."""
+    from toolkit.evaluation.metrics import point_errors
+
     rows = np.asarray(rows, np.int64)
-    parts = []
-    for span in spans(open_cloud(path).count, chunk_points):
-        lo, hi = np.searchsorted(rows, [span.start, span.start + span.count])
-        if hi > lo:
-            parts.append((span, rows[lo:hi], truth[lo:hi]))
-    done = list(map_spans(_RowErrors(Path(path)), parts, client, shared=warp))
+    source = open_cloud(path)
+    if not source.seekable:  # an ASCII PLY or a PCD: read once, in order, here
+        done = []
+        for chunk in source.chunks(chunk_points):
+            lo, hi = np.searchsorted(rows, [chunk.start, chunk.start + len(chunk.xyz)])
+            xyz = chunk.xyz[rows[lo:hi] - chunk.start]
+            done.append(point_errors(warp.move(xyz)[0].apply(xyz), np.asarray(truth[lo:hi])))
+    else:
+        parts = []
+        for span in spans(source.count, chunk_points):
+            lo, hi = np.searchsorted(rows, [span.start, span.start + span.count])
+            if hi > lo:
+                parts.append((span, rows[lo:hi], truth[lo:hi]))
+        done = list(map_spans(_RowErrors(Path(path)), parts, client, shared=warp))
     if not done:
         return np.zeros(0), np.zeros(0)
     return np.concatenate([d[0] for d in done]), np.concatenate([d[1] for d in done])

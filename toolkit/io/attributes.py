@@ -82,6 +82,11 @@ class CloudSource:
         return None
 
     @property
+    def seekable(self) -> bool:
+        """``read`` starts at its first row (a binary PLY or LAS/LAZ), not at the file's start."""
+        return self.kind == "las" or (self.kind == "ply" and self.ply.fmt != "ascii")
+
+    @property
     def is_mesh(self) -> bool:
         return self.ply is not None and len(self.ply.elements) > 1
 
