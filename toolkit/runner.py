@@ -94,7 +94,7 @@ def build(recipe: Recipe, scene: str | Path | None = None, registry: Registry | 
         available.add(KIND_OUTPUT[spec.name])
         stages.append((spec, stage))
     scene_obj = resolve_street_scale(load_scene(resolve_scene_path(recipe, scene)), recipe.street_scale, recipe.path)
-    capture = street_capture(scene_obj, recipe)  # the run's one capture, in metres now that the scale is known
+    capture = StreetCapture(scene_obj)  # the run's one capture, in metres now that the scale is known
     needed: list[str] = []
     for spec, stage in stages:
         for need in type(stage).scene_needs(stage.params):
@@ -107,7 +107,8 @@ def build(recipe: Recipe, scene: str | Path | None = None, registry: Registry | 
     from toolkit.validate import check_scene_files
 
     check_scene_files(scene_obj, needed, [stage for _, stage in stages], capture)
-    return Plan(recipe=recipe, scene=scene_obj, stages=tuple(stages), capture=capture)
+    # a cloud too large to hold is analysed on every k-th point (read only once its header is checked)
+    return Plan(recipe=recipe, scene=scene_obj, stages=tuple(stages), capture=street_capture(scene_obj, recipe))
 
 
 def street_capture(scene: Scene, recipe: Recipe) -> StreetCapture:
