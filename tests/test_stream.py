@@ -64,6 +64,7 @@ def test_a_thinned_run_writes_every_point_in_order_as_apply_moves_them(tmp_path)
     # the truth errors cover every point, and stay close to those of the run that held the whole cloud
     mine, whole = json.loads((thin.out_dir / "metrics.json").read_text()), full.results.metrics.values
     assert mine["truth"]["error_3d"]["n"] == n
+    assert mine["street_cloud"] == {"points": n, "analysis_step": step, "analysis_points": len(reg.rows)}
     assert mine["truth"]["horizontal"]["median_m"] < max(1.5 * whole["truth"]["horizontal"]["median_m"], 0.2)
 
 

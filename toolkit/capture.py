@@ -43,13 +43,18 @@ class StreetCapture:
     chunk_points: int = 2_000_000  # rows per chunk of a streamed read
 
     @property
+    def cloud_points(self) -> int:
+        """Points of the street cloud (its header)."""
+        from toolkit.io.attributes import open_cloud
+
+        return open_cloud(self.cloud_path).count
+
+    @property
     def rows(self) -> np.ndarray | None:
         """The input rows of ``points`` (None: every row, in order)."""
         if self.step == 1:
             return None
-        from toolkit.io.attributes import open_cloud
-
-        return np.arange(0, open_cloud(self.cloud_path).count, self.step, dtype=np.int64)
+        return np.arange(0, self.cloud_points, self.step, dtype=np.int64)
 
     @property
     def scale(self) -> StreetScale:

@@ -179,6 +179,14 @@ class StreetScaleEntry(Entry):
     matching: dict[str, Any] | None = None  # the scan's figures (toolkit.street_scale.scale_from_matching)
 
 
+class StreetCloudEntry(Entry):
+    """How much of the street cloud the run analysed (``toolkit.stream``)."""
+
+    points: int | None = None           # points of the input street cloud, every one in the registered clouds
+    analysis_step: int | None = None    # the analysis took one point in this many (1: every point)
+    analysis_points: int | None = None
+
+
 class SegmentScale(Entry):
     """5th, 50th and 95th percentile of the valid segment transforms' scales."""
 
@@ -213,6 +221,7 @@ class RunMetrics(Entry):
     coverage: Coverage | None = None  # absent without street segments, or without matches and transforms
     crs: str | None = None
     street_scale: StreetScaleEntry | None = None
+    street_cloud: StreetCloudEntry | None = None  # absent without a street cloud
     heights: str | None = None  # "absolute" | "relative" (docs/scale_and_heights.md)
     segment_scale: SegmentScale | None = None  # absent without transforms, null without a valid one
     warnings: list[str] | None = None

@@ -126,6 +126,8 @@ def write_outputs(out: Path, plan, outputs: RunOutputs, timings: dict[str, float
         metrics_values["coverage"] = cov
     metrics_values["crs"] = plan.scene.crs
     metrics_values["street_scale"] = plan.scene.street_scale.as_dict()
+    if outputs.capture is not None and outputs.capture.cloud_path is not None:
+        metrics_values["street_cloud"] = street_cloud_entry(outputs.capture)
     metrics_values["heights"] = height_kind(plan.scene, outputs.overview)
     if outputs.transforms is not None:
         metrics_values["segment_scale"] = segment_scales(outputs.transforms)
@@ -179,6 +181,11 @@ def segment_scales(transforms) -> dict[str, float] | None:
     s = scale_of(T[:, :3, :3])
     p5, p50, p95 = np.percentile(s, [5, 50, 95])
     return {"p5": round(float(p5), 5), "median": round(float(p50), 5), "p95": round(float(p95), 5)}
+
+
+def street_cloud_entry(capture) -> dict[str, int]:
+    n = capture.cloud_points
+    return {"points": n, "analysis_step": capture.step, "analysis_points": len(range(0, n, capture.step))}
 
 
 def height_kind(scene, overview) -> str:

@@ -53,6 +53,10 @@ def print_summary(res, console: Console | None = None) -> None:
         table.add_row("street scale (frame units per metre)", f"{scale.value:.4f}{est} {how}")
     from toolkit.outputs import height_kind
 
+    capture = getattr(res.results, "capture", None)
+    if capture is not None and capture.step > 1:
+        table.add_row("street points, analysed", f"{capture.cloud_points:,}, one in {capture.step}")
+
     if res.scene is not None and height_kind(res.scene, res.results.overview) == "relative":
         table.add_row("heights", "relative: no DSM or terrain model, street ground at 0 m")
     for label, name, unit in SUMMARY_ROWS:
