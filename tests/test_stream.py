@@ -109,3 +109,15 @@ def test_thinned_points_are_every_kth_row_of_any_format(tmp_path):
     for path in (ascii_ply, tmp_path / "b.ply"):
         for step, chunk in ((1, 4096), (3, 1000), (7, 50)):
             np.testing.assert_array_equal(thinned_points(path, step, chunk), xyz[::step], err_msg=f"{path} {step}")
+
+
+def test_an_unreachable_scheduler_is_a_one_line_error_and_writes_nothing(tmp_path, capsys):
+    from toolkit.cli import main
+
+    _, scene = tiny_run("laz")
+    out = tmp_path / "run"
+    code = main(["run", str(RECIPE), "--scene", str(scene), "--out", str(out), "--no-rerun", "-q",
+                 "-s", "stream.max_points=20000", "--scheduler", "tcp://127.0.0.1:1"])
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert code == 2 and len(err) == 1 and "--scheduler tcp://127.0.0.1:1: connection refused" in err[0]
+    assert not out.exists() and not list(tmp_path.iterdir())

@@ -348,6 +348,9 @@ def run_recipe(recipe_path: str | Path, scene: str | Path | None = None, out: st
 
         with use_client(scheduler, recipe.stream.workers):
             return _run_plan(plan, recipe, out_dir, overwrite, observer, rerun, overlap)
+    if scheduler:
+        log.info("--scheduler %s: not used, the street cloud is within stream.max_points and is held whole",
+                 scheduler)
     return _run_plan(plan, recipe, out_dir, overwrite, observer, rerun, overlap)
 
 
