@@ -170,6 +170,8 @@ def _write_report(out: Path, plan, outputs: RunOutputs, timings, warnings, asses
         transforms=outputs.transforms, registration=outputs.registration,
         metrics=outputs.metrics, timings=timings, warnings=warnings,
         street_points=street_points, assessment=assessment,
+        analysis_step=capture.step if street_points is not None else 1,
+        cloud_points=capture.cloud_points if street_points is not None and capture.step > 1 else None,
     ))
 
 

@@ -39,7 +39,9 @@ class ReportContext:
     metrics: Metrics | None = None
     timings: dict[str, float] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
-    street_points: np.ndarray | None = None  # input street frame, input order
+    street_points: np.ndarray | None = None  # input street frame, input order (a large cloud: its analysis rows)
+    analysis_step: int = 1                    # the run analysed one street point in this many
+    cloud_points: int | None = None           # the street cloud's points (None: len(street_points))
     title: str | None = None
     assessment: Any = None  # toolkit.status.Assessment: the truth-free self-assessment, shown first
 
@@ -285,7 +287,8 @@ def _page(c: ReportContext, metrics: RunMetrics, rows: list[SegmentRow], figures
                   if c.scene is not None else "no scene")
     counts = []
     if c.street_points is not None:
-        counts.append(f"{len(c.street_points):,} street points")
+        n = c.cloud_points if c.cloud_points is not None else len(c.street_points)
+        counts.append(f"{n:,} street points" + (f" (analysed one in {c.analysis_step})" if c.analysis_step > 1 else ""))
     if c.street is not None:
         counts.append(f"{len(c.street)} street segments")
     if c.overview is not None:
