@@ -59,8 +59,11 @@ def run(args: argparse.Namespace) -> int:
 
     if args.workers < 0:
         raise CrossviewError(f"--workers {args.workers}: must be 0 or more")
+    from toolkit.observe import ProgressObserver
+
     with use_client(args.scheduler, args.workers):
-        done = apply_run(args.run_dir, args.cloud, args.out, args.overwrite)
+        done = apply_run(args.run_dir, args.cloud, args.out, args.overwrite,
+                         progress=ProgressObserver(quiet=args.quiet).progress)
     if not args.quiet:
         what = "vertices" if done.mesh else "points"
         print(f"{done.out}: {done.count} {what} moved in {done.seconds:.1f} s "
@@ -70,8 +73,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def apply_run(run_dir: Path, cloud: Path, out: Path | None = None, overwrite: bool = False,
-              chunk_points: int = CHUNK_POINTS) -> Applied:
-    """Every check before anything is written; then the output, atomically."""
+              chunk_points: int = CHUNK_POINTS, progress=None) -> Applied:
+    """Every check before anything is written; then the output, atomically. ``progress``: an
+    observer's ``progress``, shown while a cloud is moved a chunk at a time."""
     import time
 
     t0 = time.perf_counter()
@@ -93,7 +97,7 @@ def apply_run(run_dir: Path, cloud: Path, out: Path | None = None, overwrite: bo
     tmp = out.parent / f".{out.stem}.partial-{os.getpid()}{out.suffix}"
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
-        stats = _write(stored, cloud, source, tmp, mesh, chunk_points)
+        stats = _write(stored, cloud, source, tmp, mesh, chunk_points, progress)
         tmp.replace(out)
     except BaseException:
         tmp.unlink(missing_ok=True)
@@ -113,7 +117,7 @@ def _out_path(run_dir: Path, cloud: Path, out: Path | None, mesh: bool) -> Path:
 
 
 def _write(stored: StoredWarp, cloud: Path, source: CloudSource | None, tmp: Path, mesh: bool,
-           chunk_points: int) -> CarrierStats:
+           chunk_points: int, progress=None) -> CarrierStats:
     from toolkit.threads import single_threaded_blas
 
     grid = LasGrid(stored.las_offset_m, stored.las_scale_m)
@@ -128,7 +132,7 @@ def _write(stored: StoredWarp, cloud: Path, source: CloudSource | None, tmp: Pat
 
         return export_cloud(source, mover, stored.crs, grid, laz=tmp if suffix in (".laz", ".las") else None,
                             ply=tmp if suffix == ".ply" else None, chunk_points=chunk_points,
-                            client=active_client())
+                            client=active_client(), progress=progress)
 
 
 def _write_ply_mesh(stored: StoredWarp, source: CloudSource, mover, tmp: Path, chunk_points: int) -> CarrierStats:

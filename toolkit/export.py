@@ -73,7 +73,7 @@ def export_cloud(source: CloudSource, mover: Mover, crs: str, grid: LasGrid, laz
             ply_out = stack.enter_context(PlyWriter(ply, source.count, ply_fields(source), (crs_comment(crs),)))
         pairs = moved_chunks(source, mover, chunk_points, client)
         if progress is not None:
-            pairs = progress(pairs, total=-(-source.count // chunk_points), desc="writing the registered cloud")
+            pairs = progress(pairs, total=-(-source.count // chunk_points), desc=f"moving {source.count:,} points")
         for chunk, moved in pairs:
             values = turned_values(chunk, moved, normals, dict(source.fields))
             if las_out is not None:
