@@ -171,8 +171,7 @@ def _write_obj(stored: StoredWarp, cloud: Path, tmp: Path) -> CarrierStats:
 
     mesh = read_obj(cloud)
     warp = stored.warp
-    carriers, distance = warp.carriers(mesh.xyz)
-    maps = warp.maps(mesh.xyz, carriers)
+    maps, _, distance = warp.move(mesh.xyz)
     paired = np.where(mesh.vn_vertex >= 0, mesh.vn_vertex, 0)
     vn = PointMaps(maps.rows[paired], maps.A, maps.b, maps.origin).rotate(mesh.vn) if len(mesh.vn) else mesh.vn
     write_obj(tmp, mesh, maps.apply(mesh.xyz), vn, crs_comment(stored.crs).replace("comment ", "", 1))

@@ -95,19 +95,18 @@ class CloudSource:
         return reader(self, size)
 
     def read(self, start: int, count: int, pick: Any = None) -> CloudChunk:
-        """Rows ``start`` … ``start + count − 1`` alone (an ASCII PLY is read from its start); ``pick``
-        (an index or slice into those rows) keeps only some of them, before any conversion. The
-        chunk's ``start`` stays ``start``."""
+        """Rows ``start`` … ``start + count − 1`` alone, of a ``seekable`` cloud or one held in memory;
+        ``pick`` (an index or slice into those rows) keeps only some of them, before any conversion.
+        The chunk's ``start`` stays ``start``."""
         if self.kind == "las":
             return _las_read(self, start, count, pick)
-        if self.kind == "ply" and self.ply.fmt != "ascii":
+        if self.seekable:
             return _ply_read(self, start, count, pick)
-        for chunk in self.chunks(start + count if self.kind == "ply" else count):
-            if chunk.start <= start < chunk.start + len(chunk.xyz):
-                rows = np.arange(start - chunk.start, min(start - chunk.start + count, len(chunk.xyz)))
-                rows = rows if pick is None else rows[pick]
-                return CloudChunk(start, chunk.xyz[rows], {n: v[rows] for n, v in chunk.values.items()})
-        raise SceneError(f"{self.path}: rows {start}-{start + count - 1} are beyond its {self.count} points")
+        if self.kind == "memory":
+            rows = np.arange(start, min(start + count, self.count))
+            rows = rows if pick is None else rows[pick]
+            return CloudChunk(start, self._whole["xyz"][rows], {n: self._whole[n][rows] for n in self.names})
+        raise ValueError(f"{self.path}: an ASCII PLY is read in order (chunks), not from a given row")
 
 
 def open_cloud(path: str | Path) -> CloudSource:
@@ -252,9 +251,7 @@ def _las_chunks(src: CloudSource, size: int) -> Iterator[CloudChunk]:
     start = 0
     with laspy.open(src.path) as reader:
         for chunk in reader.chunk_iterator(size):
-            xyz = np.column_stack([np.asarray(chunk.x), np.asarray(chunk.y), np.asarray(chunk.z)])
-            values = {n: np.asarray(chunk[n]) for n, _ in src.fields}
-            yield CloudChunk(start, xyz, values, las=chunk.array)
+            yield _las_chunk(src, start, chunk)
             start += len(chunk)
     if start != src.count:
         raise SceneError(f"{src.path}: LAS/LAZ is truncated ({start} of {src.count} points)")
@@ -270,8 +267,13 @@ def _las_read(src: CloudSource, start: int, count: int, pick: Any = None) -> Clo
         raise SceneError(f"{src.path}: LAS/LAZ is truncated ({start + len(chunk)} of {src.count} points)")
     if pick is not None:  # before the scaled coordinates are made: 151 M of them cost 7 s
         chunk = chunk[pick]
-    xyz = np.column_stack([np.asarray(chunk.x), np.asarray(chunk.y), np.asarray(chunk.z)])
-    return CloudChunk(start, xyz, {n: np.asarray(chunk[n]) for n, _ in src.fields}, las=chunk.array)
+    return _las_chunk(src, start, chunk)
+
+
+def _las_chunk(src: CloudSource, start: int, points) -> CloudChunk:
+    """laspy points → a ``CloudChunk``: float64 xyz, every field, the raw records."""
+    xyz = np.column_stack([np.asarray(points.x), np.asarray(points.y), np.asarray(points.z)])
+    return CloudChunk(start, xyz, {n: np.asarray(points[n]) for n, _ in src.fields}, las=points.array)
 
 
 def _open_pcd(path: Path) -> CloudSource:
