@@ -8,7 +8,7 @@ each figure's change. The campus is a regression check, not a tuning set: the is
 no figure gets more than 10 % worse.
 
 usage: python bench/campus_regression.py [--seeds 0,1,2,3,4] [--recipes dsm,osm,label_map]
-       [--set KEY=VALUE ...] [--tag NAME]
+       [--set KEY=VALUE ...] [--tag NAME] [--reuse-default]
 """
 
 from __future__ import annotations
@@ -36,8 +36,10 @@ def campus(seed: int) -> Path:
     return root
 
 
-def run(seed: int, recipe: str, tag: str, overrides: list[str]) -> tuple[dict, float]:
+def run(seed: int, recipe: str, tag: str, overrides: list[str], reuse: bool = False) -> tuple[dict, float]:
     out = OUT / tag / f"{seed}-{recipe}"
+    if reuse and (out / "metrics.json").is_file():
+        return json.loads((out / "metrics.json").read_text()), float("nan")
     cmd = [sys.executable, "-m", "toolkit.cli", "run", str(REPO / "recipes" / f"{recipe}.yaml"),
            "--scene", str(campus(seed)), "--out", str(out), "--overwrite", "--no-rerun", "-q"]
     for kv in overrides:
@@ -61,13 +63,15 @@ def main() -> None:
     ap.add_argument("--recipes", default="dsm,osm,label_map")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="the variant's recipe override")
     ap.add_argument("--tag", default="variant", help="the variant's output folder under data/campus-out/")
+    ap.add_argument("--reuse-default", action="store_true",
+                    help="take the default runs from data/campus-out/default/ when they are there (same code)")
     args = ap.parse_args()
     worst = (0.0, "")
     head = "  ".join(f"{name:>16s}" for name, _ in FIGURES)
     print(f"{'seed recipe':16s} {head}   seconds (default → variant)")
     for seed in map(int, args.seeds.split(",")):
         for recipe in args.recipes.split(","):
-            base, t_base = run(seed, recipe, "default", [])
+            base, t_base = run(seed, recipe, "default", [], args.reuse_default)
             var, t_var = run(seed, recipe, args.tag, args.set)
             cells = []
             for name, path in FIGURES:

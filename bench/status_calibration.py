@@ -5,7 +5,7 @@ the truth figures), and prints:
 - the confusion table (flagged × accurate) of the rule the runs were judged with, and its gross
   failures (horizontal median > 2 m) that were not flagged;
 - a leave-one-city-out choice of the rule's main hard limits (façade distance and support, registered
-  point share, median segment scale) and of ``min_confidence``: for each city, the limits are chosen on the other
+  point share, median segment scale, neighbour disagreement) and of ``min_confidence``: for each city, the limits are chosen on the other
   cities' runs only (every gross failure there flagged, then the fewest accurate runs flagged,
   then the limits farthest from the runs that decided them), and the held-out city's runs are
   judged with them. Nothing is re-run: ``StatusRule.judge`` works from the stored figures.
@@ -92,6 +92,7 @@ def main() -> int:
             "min_facade_support_share": [0.2, 0.3, 0.4, 0.5, 0.6],
             "min_registered_point_share": [0.2, 0.3, 0.4, 0.5],
             "max_segment_scale_deviation": [0.02, 0.025, 0.035, 0.05, 0.07],
+            "max_neighbour_disagree_share": [0.2, 0.3, 0.4, 0.5, 0.6],
             "min_confidence": [0.3, 0.4, 0.5, 0.6]}
     cities = sorted({r["city"] for r in runs})
     held_flags: dict[str, bool] = {}

@@ -14,7 +14,9 @@ another pass of the route than its segment is re-anchored on a segment of its ow
 (``toolkit.warp.passes``). The weights are evaluated once per ``weight_cell_m`` cell (speed).
 Distances may be measured from the point's nearest segment (``relative_distance``), and each camera
 carries the spread of the transforms blended at it (``Registration.camera_spread_m``: the bundle
-adjustment holds uncertainly placed cameras more loosely).
+adjustment holds uncertainly placed cameras more loosely). Cameras that see no registered façade
+follow the street trajectory between those that do (``bridge_min_observations``,
+``toolkit.warp.bridge``, docs/camera_bridge.md).
 """
 
 from __future__ import annotations
@@ -70,6 +72,12 @@ class InverseLog(Stage):
             10.0, gt=0, description="Only sparse points within this distance of a "
                                     "street point give it a route position (m)")
 
+        bridge_min_observations: int = Field(
+            10, ge=0, description="A camera observing fewer registered façade points than this follows the "
+                                 "street trajectory between those that do, not the blend (count; 0: off)")
+        bridge_min_gap_m: float = Field(
+            100.0, ge=0, description="Only stretches of the route at least this long between such cameras are bridged (m)")
+
     @classmethod
     def scene_needs(cls, params) -> tuple[str, ...]:
         return ("street_cloud",)
@@ -80,4 +88,6 @@ class InverseLog(Stage):
         return warp_scene(transforms, street, capture, p.neighbours_k, p.min_distance_m, p.neighbour_gap_m,
                           p.neighbour_gap_ratio, np.inf if p.max_neighbour_gap_m is None else p.max_neighbour_gap_m,
                           p.weight_cell_m, PassCheck(p.pass_gap_m, p.pass_sparse_gap_m),
-                          relative=p.relative_distance, camera_k=p.camera_neighbours_k)
+                          relative=p.relative_distance, camera_k=p.camera_neighbours_k,
+                          bridge_min_observations=p.bridge_min_observations,
+                          bridge_min_gap_m=p.bridge_min_gap_m)

@@ -159,3 +159,20 @@ def test_points_without_a_sparse_point_near_them_take_their_carriers_pass(tmp_pa
     assert (reg.point_segment[900:] == 1).all()                    # the unregistered segment's ground
     assert np.allclose(reg.points[900:], pts[900:] + [0.0, 12.0, 0.0])
     assert (reg.point_segment[:300] == 0).all()
+
+
+@pytest.mark.parametrize("min_observations", [1, 5, 1000])
+def test_bridged_cameras_keep_transforms_that_agree_with_the_trajectory(tmp_path, min_observations):
+    """Each pass has one exact transform (identity, a 12 m shift): following the street trajectory
+    from grounded cameras reproduces it; the camera 1 km away (a break in the sequence) is left as is."""
+    street, scene, tr, _ = _loop_scene(tmp_path)
+    extra = {"neighbours_k": 1, "camera_neighbours_k": 1}
+    base = InverseLog.from_config(extra)(tr, street, scene, StreetCapture(scene), NullObserver())
+    for gap in (200.0, None):   # with and without the pass check (two ways to find registered façades)
+        reg = InverseLog.from_config({**extra, "pass_gap_m": gap, "bridge_min_observations": min_observations})(
+            tr, street, scene, StreetCapture(scene), NullObserver())
+        centres = -np.einsum("cji,cj->ci", reg.R, reg.t)
+        assert np.all(np.isfinite(centres))
+        if gap is not None:
+            assert np.allclose(centres, -np.einsum("cji,cj->ci", base.R, base.t), atol=1e-6)
+            assert np.allclose(reg.R, base.R, atol=1e-9)

@@ -24,6 +24,7 @@ from toolkit.refine.route import camera_route_positions, sparse_segments
 from toolkit.threads import map_in_order, single_threaded_blas
 from toolkit.types import Registration, SegmentTransforms, SparseModel, StreetSegments
 from toolkit.warp.blend import SegmentIndex, blend_rigid
+from toolkit.warp.bridge import CameraPoses, bridge_gaps, grounded_cameras
 from toolkit.warp.cells import levelled_xy
 from toolkit.warp.model import PointWarp
 from toolkit.warp.passes import point_route_positions, reanchor_other_pass, sparse_route_positions
@@ -84,16 +85,21 @@ def segment_route_positions(seg_of_point: np.ndarray, sparse_s: np.ndarray, S: i
 def warp_scene(transforms: SegmentTransforms, street: StreetSegments, capture: StreetCapture, k: int, d_min: float,
                agree_tol_m: float = np.inf, agree_ratio: float = 0.0, max_gap_m: float = np.inf,
                cell_m: float = 0.5, passes: PassCheck = PassCheck(), relative: bool = False,
-               camera_k: int | None = None) -> Registration:
-    """Blend points over their anchor and its k neighbours, cameras over camera_k (None: k)."""
+               camera_k: int | None = None, bridge_min_observations: int = 0,
+               bridge_min_gap_m: float = 0.0) -> Registration:
+    """Blend points over their anchor and its k neighbours, cameras over camera_k (None: k); cameras
+    that see fewer than ``bridge_min_observations`` registered façade points follow the street path
+    between those that do (``toolkit.warp.bridge``; 0: off)."""
     with single_threaded_blas():
         return _warp_scene(transforms, street, capture, k, d_min, agree_tol_m, agree_ratio, max_gap_m, cell_m, passes,
-                           relative, k if camera_k is None else camera_k)
+                           relative, k if camera_k is None else camera_k, bridge_min_observations,
+                           bridge_min_gap_m)
 
 
 def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, capture: StreetCapture, k: int,
                 d_min: float, agree_tol_m: float, agree_ratio: float, max_gap_m: float, cell_m: float,
-                passes: PassCheck, relative: bool, camera_k: int) -> Registration:
+                passes: PassCheck, relative: bool, camera_k: int, bridge_min_observations: int,
+                bridge_min_gap_m: float) -> Registration:
     T = np.asarray(transforms.T, np.float64)
     valid = np.asarray(transforms.valid, bool)
     pts = capture.points
@@ -160,6 +166,14 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, capture: 
                                                  np.asarray(index.all_tree.data), index.all_seg,
                                                  passes.pass_gap_m)
         pos, Rb, spread = blend_rigid(C, cxy, cam_anchor, T, index, camera_k, d_min, relative)
+        if bridge_min_observations > 0 and len(model.points3d):
+            facade_seg = found[1] if passes.pass_gap_m is not None else sparse_segments(
+                model, pts, carrier, np.ones(len(street), bool), only=np.asarray(street.point_labels) >= 0)
+            on_registered = (facade_seg >= 0) & valid[np.maximum(facade_seg, 0)]
+            grounded = grounded_cameras(model.observations, on_registered, len(C), bridge_min_observations)
+            scale = np.cbrt(np.abs(np.linalg.det(T[cam_anchor, :3, :3])))
+            poses, _ = bridge_gaps(C, CameraPoses(pos, Rb, scale, spread), grounded, bridge_min_gap_m)
+            pos, Rb, spread = poses.centres, poses.rotations, poses.spread
         R = np.einsum("cab,cdb->cad", model.R, Rb)          # R_wc · R̄ᵀ
         t = -np.einsum("cab,cb->ca", R, pos)
     return Registration(points=moved, image_names=names, R=R, t=t, point_segment=anchors.astype(np.int64, copy=False),
