@@ -62,7 +62,7 @@ class StatusRule:
 
     min_confidence: float = 0.4
     # hard limits
-    min_registered_point_share: float = 0.3
+    min_registered_point_share: float = 0.5
     min_facade_support_share: float = 0.4
     max_facade_distance_median_m: float = 1.2
     max_neighbour_disagree_share: float = 0.4
