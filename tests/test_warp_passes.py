@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -176,3 +178,29 @@ def test_bridged_cameras_keep_transforms_that_agree_with_the_trajectory(tmp_path
         if gap is not None:
             assert np.allclose(centres, -np.einsum("cji,cj->ci", base.R, base.t), atol=1e-6)
             assert np.allclose(reg.R, base.R, atol=1e-9)
+
+
+def test_bridged_cameras_follow_the_capture_order_not_the_models(tmp_path, monkeypatch):
+    """The same cameras listed in reverse (names numbered backwards) are bridged along the same
+    trajectory: the bridge walks the images in capture (name) order."""
+    import toolkit.warp.apply as warp_apply
+
+    seen = []
+    real = warp_apply.bridge_gaps
+    monkeypatch.setattr(warp_apply, "bridge_gaps", lambda C, *a, **k: seen.append(C.copy()) or real(C, *a, **k))
+    street, scene, tr, _ = _loop_scene(tmp_path)
+    cfg = {"neighbours_k": 1, "camera_neighbours_k": 1, "bridge_min_observations": 5}
+    forward = InverseLog.from_config(cfg)(tr, street, scene, StreetCapture(scene), NullObserver())
+    model = StreetCapture(scene).sparse
+    n = len(model.image_names)
+    backwards = dataclasses.replace(model, image_names=tuple(f"c{n - 1 - i:03d}.jpg" for i in range(n)))
+    root = tmp_path / "backwards"
+    (root / "street").mkdir(parents=True)
+    write_ply(root / "street/cloud.ply", StreetCapture(scene).points)
+    write_model(backwards, root / "street/sparse")
+    write_manifest(root, "loop", "EPSG:32617", {"street": {"cloud": "street/cloud.ply", "sparse": "street/sparse"}})
+    scene_b = load_scene(root)
+    reverse = InverseLog.from_config(cfg)(tr, street, scene_b, StreetCapture(scene_b), NullObserver())
+    assert np.allclose(seen[1], seen[0][::-1])          # handed over in capture order both times
+    centres = [-np.einsum("cji,cj->ci", r.R, r.t) for r in (forward, reverse)]
+    assert np.allclose(centres[0], centres[1], atol=1e-6)

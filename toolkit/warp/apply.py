@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from toolkit.capture import StreetCapture
+from toolkit.matching.route_prior import capture_order
 from toolkit.refine.route import camera_route_positions, sparse_segments
 from toolkit.threads import map_in_order, single_threaded_blas
 from toolkit.types import Registration, SegmentTransforms, SparseModel, StreetSegments
@@ -172,8 +173,11 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, capture: 
             on_registered = (facade_seg >= 0) & valid[np.maximum(facade_seg, 0)]
             grounded = grounded_cameras(model.observations, on_registered, len(C), bridge_min_observations)
             scale = np.cbrt(np.abs(np.linalg.det(T[cam_anchor, :3, :3])))
-            poses, _ = bridge_gaps(C, CameraPoses(pos, Rb, scale, spread), grounded, bridge_min_gap_m)
-            pos, Rb, spread = poses.centres, poses.rotations, poses.spread
+            seq = capture_order(model.image_names)      # the trajectory in capture order, whatever the model's
+            poses, _ = bridge_gaps(C[seq], CameraPoses(pos[seq], Rb[seq], scale[seq], spread[seq]), grounded[seq],
+                                   bridge_min_gap_m)
+            pos, Rb, spread = pos.copy(), Rb.copy(), spread.copy()
+            pos[seq], Rb[seq], spread[seq] = poses.centres, poses.rotations, poses.spread
         R = np.einsum("cab,cdb->cad", model.R, Rb)          # R_wc · R̄ᵀ
         t = -np.einsum("cab,cb->ca", R, pos)
     return Registration(points=moved, image_names=names, R=R, t=t, point_segment=anchors.astype(np.int64, copy=False),
