@@ -102,7 +102,7 @@ def bridge_gaps(street_centres: np.ndarray, poses: CameraPoses, grounded: np.nda
     """Bridged poses, and (C,) bool: which cameras were bridged (see the module doc). Runs shorter
     than ``min_gap_m`` of route (from grounded camera to grounded camera) keep the blend.
 
-    street_centres: (C,) camera centres in the street frame, in image (sequence) order.
+    street_centres: (C,) camera centres in the street frame, in capture (sequence) order.
     """
     C = len(street_centres)
     centres, rotations = poses.centres.copy(), poses.rotations.copy()
