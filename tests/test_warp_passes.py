@@ -171,7 +171,8 @@ def test_bridged_cameras_keep_transforms_that_agree_with_the_trajectory(tmp_path
     extra = {"neighbours_k": 1, "camera_neighbours_k": 1}
     base = InverseLog.from_config(extra)(tr, street, scene, StreetCapture(scene), NullObserver())
     for gap in (200.0, None):   # with and without the pass check (two ways to find registered façades)
-        reg = InverseLog.from_config({**extra, "pass_gap_m": gap, "bridge_min_observations": min_observations})(
+        reg = InverseLog.from_config({**extra, "pass_gap_m": gap, "bridge_min_observations": min_observations,
+                                      "bridge_min_gap_m": 0})(
             tr, street, scene, StreetCapture(scene), NullObserver())
         centres = -np.einsum("cji,cj->ci", reg.R, reg.t)
         assert np.all(np.isfinite(centres))
@@ -189,7 +190,7 @@ def test_bridged_cameras_follow_the_capture_order_not_the_models(tmp_path, monke
     real = warp_apply.bridge_gaps
     monkeypatch.setattr(warp_apply, "bridge_gaps", lambda C, *a, **k: seen.append(C.copy()) or real(C, *a, **k))
     street, scene, tr, _ = _loop_scene(tmp_path)
-    cfg = {"neighbours_k": 1, "camera_neighbours_k": 1, "bridge_min_observations": 5}
+    cfg = {"neighbours_k": 1, "camera_neighbours_k": 1, "bridge_min_observations": 5, "bridge_min_gap_m": 0}
     forward = InverseLog.from_config(cfg)(tr, street, scene, StreetCapture(scene), NullObserver())
     model = StreetCapture(scene).sparse
     n = len(model.image_names)
@@ -204,3 +205,17 @@ def test_bridged_cameras_follow_the_capture_order_not_the_models(tmp_path, monke
     assert np.allclose(seen[1], seen[0][::-1])          # handed over in capture order both times
     centres = [-np.einsum("cji,cj->ci", r.R, r.t) for r in (forward, reverse)]
     assert np.allclose(centres[0], centres[1], atol=1e-6)
+
+
+def test_the_registration_says_which_cameras_were_bridged(tmp_path):
+    from toolkit.status import bridged_camera_share
+
+    street, scene, tr, _ = _loop_scene(tmp_path)
+    cfg = {"neighbours_k": 1, "camera_neighbours_k": 1}
+    off = InverseLog.from_config({**cfg, "bridge_min_observations": 0})(tr, street, scene, StreetCapture(scene),
+                                                                         NullObserver())
+    on = InverseLog.from_config({**cfg, "bridge_min_observations": 5, "bridge_min_gap_m": 0})(
+        tr, street, scene, StreetCapture(scene), NullObserver())
+    assert off.camera_bridged is None and bridged_camera_share(off) is None
+    assert on.camera_bridged.dtype == bool and on.camera_bridged.sum() == 2     # two cameras see < 5 façade points
+    assert bridged_camera_share(on) == 2 / 41

@@ -314,6 +314,7 @@ def measure(outputs: RunOutputs, params: AssessParams | None = None) -> dict[str
                                   params.facade_cap_m))
     figures["outside_grid_share"] = outside_grid_share(registration, overview, params.max_points)
     figures.update(camera_spread(registration))
+    figures["bridged_camera_share"] = bridged_camera_share(registration)
     figures["camera_height_median_m"] = camera_height_m(registration, street, params.max_points)
     if figures["camera_height_median_m"] is None and registration is None and street is not None and len(street) \
             and outputs.capture is not None and outputs.capture.sparse_path is not None:
@@ -448,6 +449,13 @@ def outside_grid_share(registration: Registration | None, overview: OverviewSegm
     grid = overview.grid
     inside = (rc[:, 0] >= 0) & (rc[:, 0] < grid.height) & (rc[:, 1] >= 0) & (rc[:, 1] < grid.width)
     return float(1.0 - inside.mean())
+
+
+def bridged_camera_share(registration: Registration | None) -> float | None:
+    """Share of the cameras placed by following the street trajectory across a route gap
+    (Registration.camera_bridged); None when no bridge ran."""
+    bridged = None if registration is None else registration.camera_bridged
+    return None if bridged is None or len(bridged) == 0 else float(np.mean(bridged))
 
 
 def camera_spread(registration: Registration | None) -> dict[str, Any]:

@@ -15,6 +15,7 @@ STATUS_ROWS: tuple[tuple[str, str, str], ...] = (
     ("neighbour disagreement, median / share > {tol:g} m", "neighbour_gap_median_m|neighbour_disagree_share",
      "{:.2f} m / {:.0%}"),
     ("matching converged (iterations)", "bp_converged|bp_iterations", "{} ({})"),
+    ("cameras bridged across route gaps", "bridged_camera_share", "{:.0%}"),
     ("BA reprojection RMS, before / after", "ba_rms_before_px|ba_rms_after_px", "{:.2f} / {:.2f} px"),
     ("GPS residual of the cameras, median", "gps_residual_median_m", "{:.2f} m"),
 )

@@ -366,6 +366,8 @@ class Registration:
     carriers), stored as ``warp.npz`` for ``crossview apply``; None when the stage gives none.
     rows: (N,) input row of each point when the run analysed every k-th point of a large cloud
     (``toolkit.stream``); None: row i is input point i.
+    camera_bridged: (C,) bool, the camera's pose follows the street trajectory across a route gap
+    (``toolkit.warp.bridge``), or None (no bridge ran).
     """
 
     points: Array
@@ -376,6 +378,7 @@ class Registration:
     camera_spread_m: Array | None = None
     warp: Any = None
     rows: Array | None = None
+    camera_bridged: Array | None = None
 
 
 @dataclass(frozen=True)

@@ -150,6 +150,7 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, capture: 
     moved = warp.maps(pts, anchors, xy).apply(pts)
     names: tuple[str, ...] = ()
     R, t, spread = np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0)
+    bridged = None
     if model is not None and len(model.image_names):
         names = model.image_names
         C = model.centres
@@ -174,12 +175,12 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, capture: 
             grounded = grounded_cameras(model.observations, on_registered, len(C), bridge_min_observations)
             scale = np.cbrt(np.abs(np.linalg.det(T[cam_anchor, :3, :3])))
             seq = capture_order(model.image_names)      # the trajectory in capture order, whatever the model's
-            poses, _ = bridge_gaps(C[seq], CameraPoses(pos[seq], Rb[seq], scale[seq], spread[seq]), grounded[seq],
-                                   bridge_min_gap_m)
-            pos, Rb, spread = pos.copy(), Rb.copy(), spread.copy()
-            pos[seq], Rb[seq], spread[seq] = poses.centres, poses.rotations, poses.spread
+            poses, in_gap = bridge_gaps(C[seq], CameraPoses(pos[seq], Rb[seq], scale[seq], spread[seq]),
+                                        grounded[seq], bridge_min_gap_m)
+            pos, Rb, spread, bridged = pos.copy(), Rb.copy(), spread.copy(), np.zeros(len(C), bool)
+            pos[seq], Rb[seq], spread[seq], bridged[seq] = poses.centres, poses.rotations, poses.spread, in_gap
         R = np.einsum("cab,cdb->cad", model.R, Rb)          # R_wc · R̄ᵀ
         t = -np.einsum("cab,cb->ca", R, pos)
     return Registration(points=moved, image_names=names, R=R, t=t, point_segment=anchors.astype(np.int64, copy=False),
-                        camera_spread_m=spread, rows=capture.rows,
+                        camera_spread_m=spread, rows=capture.rows, camera_bridged=bridged,
                         warp=warp.with_source(pts, anchors).for_input_frame(capture.scale.value))
