@@ -28,6 +28,11 @@ rigid fit's. Rows go to data/cities/results.json (after each run) under the code
 (``git rev-parse --short HEAD``, "-dirty" when tracked files differ from it, "+NAME" for a variant
 run with ``--set`` overrides and ``--tag NAME``, whose outputs go to data/cities/out-NAME/; each row also keeps
 a hash of the diff).
+
+``--gps-sigma-m S --gps-every N`` (with --gps, needs --tag): the runs use fixes made for the bench
+from truth/cameras.txt, every N-th image with a slowly wandering error of S m per axis (the
+generator's model, its own seed), written beside the scene as street/gps-s{S}-e{N}.csv with a
+scene-gps-s{S}-e{N}.yaml manifest; the scene itself is not rebuilt.
 """
 
 from __future__ import annotations
@@ -270,10 +275,35 @@ def _scene_of_out(name: str) -> str:
 
 
 # --- running -------------------------------------------------------------------------------------
-def run_one(s: Scene, recipe: str, gps: bool, overrides: tuple[str, ...] = (), tag: str = "") -> dict:
+def gps_variant(s: Scene, sigma_m: float, every: int) -> Path:
+    """scene-gps-s{sigma}-e{every}.yaml: the scene with bench-made fixes (see the module doc)."""
+    from pyproj import Transformer
+    from scipy.ndimage import gaussian_filter1d
+
+    from _common import truth_centres
+
+    stem = f"gps-s{sigma_m:g}-e{every}"
+    manifest = yaml.safe_load((s.dir / "scene.yaml").read_text())
+    centres = truth_centres(s.dir / "truth" / "cameras.txt")
+    names = [f"frame_{k:06d}.jpg" for k in range(len(centres))]
+    rng = np.random.default_rng([s.seed, 5005])
+    err = gaussian_filter1d(rng.normal(0, 1, (len(centres), 2)), sigma=15, axis=0, mode="nearest")
+    err *= sigma_m / max(float(err.std()), 1e-9)
+    xy = centres[:, :2] + err
+    lon, lat = Transformer.from_crs(manifest["crs"], "EPSG:4326", always_xy=True).transform(xy[:, 0], xy[:, 1])
+    rows = [f"{names[k]},{lon[k]:.8f},{lat[k]:.8f},{sigma_m:g}" for k in range(0, len(centres), every)]
+    (s.dir / "street" / f"{stem}.csv").write_text("\n".join(["image_name,lon,lat,sigma_m"] + rows) + "\n")
+    manifest["street"] = {**manifest["street"], "gps": f"street/{stem}.csv"}
+    out = s.dir / f"scene-{stem}.yaml"
+    out.write_text(yaml.safe_dump(manifest, sort_keys=False))
+    return out
+
+
+def run_one(s: Scene, recipe: str, gps: bool, overrides: tuple[str, ...] = (), tag: str = "",
+            manifest: Path | None = None) -> dict:
     out_root = ROOT / f"out-{tag}" if tag else OUT
     out = out_root / f"{s.name}-{recipe}{'-gps' if gps else ''}"
-    manifest = s.dir / ("scene.yaml" if gps else "scene-nogps.yaml")
+    manifest = manifest or s.dir / ("scene.yaml" if gps else "scene-nogps.yaml")
     cmd = [crossview(), "run", str(REPO / "recipes" / f"{recipe}.yaml"), "--scene", str(manifest),
            "--out", str(out), "--overwrite", "--no-rerun", "-q"] + [a for o in overrides for a in ("-s", o)]
     out_root.mkdir(parents=True, exist_ok=True)
@@ -422,7 +452,11 @@ def main() -> int:
                     help="recipe override passed to every run as -s (needs --tag)")
     ap.add_argument("--tag", default="", help="a variant's name: outputs go to data/cities/out-TAG/, rows under "
                                               "the code state + TAG")
+    ap.add_argument("--gps-sigma-m", type=float, help="with --gps: bench-made fixes of this error (m; needs --tag)")
+    ap.add_argument("--gps-every", type=int, default=1, help="with --gps-sigma-m: a fix every N images")
     args = ap.parse_args()
+    if args.gps_sigma_m is not None and not (args.gps and args.tag):
+        sys.exit("--gps-sigma-m needs --gps and --tag")
     if args.set and not args.tag:
         sys.exit("--set needs --tag (a variant must not overwrite the default runs)")
     if not RAW.is_dir():
@@ -455,6 +489,8 @@ def main() -> int:
             print(f"{'':16s} warning: {w}")
     if args.build_only:
         return 0
+    manifests = {s.name: gps_variant(s, args.gps_sigma_m, args.gps_every) for s in chosen} \
+        if args.gps_sigma_m is not None else {}
 
     # short loops first: a run cut short still has every city once
     jobs = [(s, r) for route in ("short", "long") for s in chosen if s.route == route for r in recipes]
@@ -466,7 +502,7 @@ def main() -> int:
             state = code_state()  # what the run's process loads (others may commit meanwhile)
             if args.tag:
                 state = (f"{state[0]}+{args.tag}", state[1])
-        run = run_one(s, r, args.gps, tuple(args.set), args.tag)
+        run = run_one(s, r, args.gps, tuple(args.set), args.tag, manifests.get(s.name))
         row = row_of(s, stamps[s.name], r, args.gps, run)
         with lock:
             save([row], state)  # as it goes: an interrupted matrix keeps the runs it finished
