@@ -277,22 +277,19 @@ def _scene_of_out(name: str) -> str:
 # --- running -------------------------------------------------------------------------------------
 def gps_variant(s: Scene, sigma_m: float, every: int) -> Path:
     """scene-gps-s{sigma}-e{every}.yaml: the scene with bench-made fixes (see the module doc)."""
-    from pyproj import Transformer
-    from scipy.ndimage import gaussian_filter1d
+    from toolkit.synth.config import SynthConfig
+    from toolkit.synth.street_writer import _write_gps
 
     from _common import truth_centres
 
     stem = f"gps-s{sigma_m:g}-e{every}"
     manifest = yaml.safe_load((s.dir / "scene.yaml").read_text())
-    centres = truth_centres(s.dir / "truth" / "cameras.txt")
-    names = [f"frame_{k:06d}.jpg" for k in range(len(centres))]
-    rng = np.random.default_rng([s.seed, 5005])
-    err = gaussian_filter1d(rng.normal(0, 1, (len(centres), 2)), sigma=15, axis=0, mode="nearest")
-    err *= sigma_m / max(float(err.std()), 1e-9)
-    xy = centres[:, :2] + err
-    lon, lat = Transformer.from_crs(manifest["crs"], "EPSG:4326", always_xy=True).transform(xy[:, 0], xy[:, 1])
-    rows = [f"{names[k]},{lon[k]:.8f},{lat[k]:.8f},{sigma_m:g}" for k in range(0, len(centres), every)]
-    (s.dir / "street" / f"{stem}.csv").write_text("\n".join(["image_name,lon,lat,sigma_m"] + rows) + "\n")
+    path = s.dir / "street" / f"{stem}.csv"
+    # the generator's fixes (its error model and file), then every N-th kept
+    _write_gps(path, truth_centres(s.dir / "truth" / "cameras.txt"),
+               SynthConfig(crs=manifest["crs"], gps_sigma_m=sigma_m), np.random.default_rng([s.seed, 5005]))
+    head, *rows = path.read_text().splitlines()
+    path.write_text("\n".join([head] + rows[::every]) + "\n")
     manifest["street"] = {**manifest["street"], "gps": f"street/{stem}.csv"}
     out = s.dir / f"scene-{stem}.yaml"
     out.write_text(yaml.safe_dump(manifest, sort_keys=False))

@@ -23,13 +23,10 @@ def drifted_route(n: int = 301, step_m: float = 1.0, rate_deg_per_m: float = 0.0
     return truth, street, corr
 
 
-def poses_held_from(truth, corr, grounded):
-    """What a blend does in a gap: every camera placed by the nearest grounded camera's correction."""
-    C = len(truth)
-    centres, rot = truth.copy(), corr.copy()
+def nearest_grounded(grounded):
+    """(C,) the grounded camera nearest each camera in the sequence: what a blend holds in a gap."""
     g = np.flatnonzero(grounded)
-    near = g[np.abs(np.arange(C)[:, None] - g[None]).argmin(axis=1)]
-    return centres, rot, near
+    return g[np.abs(np.arange(len(grounded))[:, None] - g[None]).argmin(axis=1)]
 
 
 def test_a_gap_follows_the_trajectory_between_grounded_cameras():
@@ -37,7 +34,7 @@ def test_a_gap_follows_the_trajectory_between_grounded_cameras():
     grounded = np.ones(len(truth), bool)
     grounded[60:240] = False                                          # a 180 m gap
     # the gap's cameras start from the nearest grounded camera's transform, as the blend leaves them
-    _, _, near = poses_held_from(truth, corr, grounded)
+    near = nearest_grounded(grounded)
     held = np.einsum("nab,nb->na", corr[near], street - street[near]) + truth[near]
     poses = CameraPoses(held, corr[near], np.ones(len(truth)), np.zeros(len(truth)))
     out, bridged = bridge_gaps(street, poses, grounded)
@@ -65,7 +62,7 @@ def test_a_random_walk_drift_is_reduced_and_the_misclosure_sets_the_spread():
         street = np.concatenate([[np.zeros(3)], np.cumsum(steps, axis=0)])
         grounded = np.ones(len(truth), bool)
         grounded[60:240] = False
-        _, _, near = poses_held_from(truth, corr, grounded)
+        near = nearest_grounded(grounded)
         held = np.einsum("nab,nb->na", corr[near], street - street[near]) + truth[near]
         out, _ = bridge_gaps(street, CameraPoses(held, corr[near], np.ones(len(truth)), np.zeros(len(truth))),
                              grounded)
@@ -123,7 +120,7 @@ def _linear_drift_gap():
     truth, street, corr = drifted_route()
     grounded = np.ones(len(truth), bool)
     grounded[60:240] = False
-    _, _, near = poses_held_from(truth, corr, grounded)
+    near = nearest_grounded(grounded)
     held = np.einsum("nab,nb->na", corr[near], street - street[near]) + truth[near]
     return truth, street, corr, grounded, CameraPoses(held, corr[near], np.ones(len(truth)), np.zeros(len(truth)))
 

@@ -81,11 +81,10 @@ def _bridge(street: np.ndarray, arc: np.ndarray, part: np.ndarray, left: np.ndar
     in_gap = np.isin(idx[1:], part)
     stepped = np.isin(part, idx[1:])            # a gap at the start of the chain has no step into its first camera
     R_step[in_gap], s_step[in_gap] = rot[stepped], sc[stepped]
-    path = np.concatenate([np.zeros((1, 3)), _chain(street, idx, np.zeros(3), R_step, s_step)])
-    at = {int(k): n for n, k in enumerate(idx)}
-    offsets = [np.median(poses.centres[e] - path[[at[int(k)] for k in e]], axis=0) for e in ends]
+    path = np.concatenate([np.zeros((1, 3)), _chain(street, idx, np.zeros(3), R_step, s_step)])   # row k − idx[0]
+    offsets = [np.median(poses.centres[e] - path[e - idx[0]], axis=0) for e in ends]
     off = offsets[0] if len(ends) == 1 else (1.0 - u)[:, None] * offsets[0] + u[:, None] * offsets[1]
-    centres = path[[at[int(k)] for k in part]] + off
+    centres = path[part - idx[0]] + off
     miss = 0.0 if len(ends) == 1 else float(np.linalg.norm(offsets[1] - offsets[0]))
     return centres, rot, sc, miss * np.sqrt(u * (1.0 - u))
 
