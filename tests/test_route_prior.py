@@ -88,3 +88,39 @@ def test_the_unary_stage_uses_the_placement_without_gps(tiny):
     assert not any("route placement not used" in w for w in obs.warnings)
     kept, searched = np.isfinite(placed.cost[:, :-1]).sum(), np.isfinite(full.cost[:, :-1]).sum()
     assert 0 < kept < searched / 3  # the placement prunes most pairs
+
+
+def test_with_a_gps_track_the_chain_takes_the_placement_near_the_fixes():
+    """Two windows, each with a better-scoring placement 40 m off the fixes' track and a slightly worse
+    one on it: alone the chain takes the better scores; with the track it takes the placements on it."""
+    from toolkit.matching.route_prior import Placement, _chain, _WindowAnchor
+
+    cfg = RoutePriorConfig()
+    cams = [np.array([[0.0, 0.0], [50.0, 0.0]]), np.array([[100.0, 0.0], [150.0, 0.0]])]
+    windows, anchors = [], []
+    for c in cams:
+        pivot = c.mean(axis=0)
+        on = Placement(theta=0.0, t=pivot.copy(), pivot=pivot, score=0.60)
+        off = Placement(theta=0.0, t=pivot + [0.0, 40.0], pivot=pivot, score=0.70)
+        windows.append([off, on])
+        anchors.append(_WindowAnchor(c, c.copy()))
+    links = [np.array([[75.0, 0.0]])]
+    alone, _ = _chain(windows, links, cfg, np.array([100.0]))
+    near, _ = _chain(windows, links, cfg, np.array([100.0]), anchors=anchors, gps_tolerance_m=5.0)
+    assert alone == [0, 0] and near == [1, 1]
+    fit = anchors[0].placement(cams[0].mean(axis=0))
+    assert anchors[0].distance(fit) < 1e-9
+
+
+def test_a_segment_placed_far_from_its_gps_position_keeps_the_gps_prior():
+    from toolkit.matching.data_term import gated_prior
+    from toolkit.matching.gps import GpsConfig, GpsPrior
+
+    fixes = GpsPrior(position=np.array([[0.0, 0.0], [100.0, 0.0]]), angle=np.zeros(2), n_fixes=50, sigma_m=5.0,
+                     fit_rms_m=np.array([5.0, 5.0]))
+    route = GpsPrior(position=np.array([[3.0, 0.0], [130.0, 0.0]]), angle=np.array([0.1, 0.2]), n_fixes=3,
+                     sigma_m=3.0, fit_rms_m=np.zeros(2))
+    placed = RoutePlacement(route, (), np.array([125.0]), np.array([0.6]), np.zeros(0), 1.0)
+    out = gated_prior(fixes, placed, 2, GpsConfig(), agree_m=10.0)
+    assert np.allclose(out.prior.position, [[3.0, 0.0], [100.0, 0.0]]) and np.allclose(out.prior.angle, [0.1, 0.0])
+    assert out.radius_m[0] < out.radius_m[1] and out.figures["gated_share"] == 0.5

@@ -231,7 +231,7 @@ def test_gps_pruned_candidates_are_infinite_and_survivors_obey_the_prior(tmp_pat
 
     graphs, _ = solved
     scene = _scene(tmp_path / "gps", toy)
-    params = DistanceMap.Params(gps_radius_m=15)
+    params = DistanceMap.Params(gps_radius_m=15, route_prior={"with_gps": False})  # the fixes' prior alone
     costs = DistanceMap(params)(graphs, toy.street, toy.overview, scene, StreetCapture(scene), NullObserver())
     prior = gps_prior(StreetCapture(scene), toy.street)
     e, lab = np.nonzero(np.isfinite(costs.cost[:, :-1]))
@@ -390,7 +390,7 @@ def test_every_option_has_a_one_line_description():
     for name, top in DistanceMap.Params.model_fields.items():
         if isinstance(top.annotation, type) and issubclass(top.annotation, BaseModel):
             fields.update({f"{name}.{key}": f for key, f in top.annotation.model_fields.items()})
-    assert len(fields) == 11 + 32 + 13  # the top level (7 groups among them), 6 groups' 32 options, route_prior's 13
+    assert len(fields) == 11 + 32 + 16  # the top level (7 groups among them), 6 groups' 32 options, route_prior's 16
     for name, f in fields.items():
         assert f.description and "\n" not in f.description and len(f.description) <= 120, name
 

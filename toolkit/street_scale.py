@@ -4,7 +4,10 @@
 number in [0.05, 20] (1.0: the frame is metric). ``auto``:
 
 - with ``street/gps.csv`` (fixes matching the COLMAP images): the median, over pairs of fixes
-  50-500 m apart, of the camera-centre distance over the fix distance (``scale_from_gps``);
+  50-500 m apart, of the camera-centre distance over the fix distance (``scale_from_gps``), as the
+  first guess the matching then checks as without GPS: fixes a few metres off bias that median by
+  several per cent, the façades against the outlines do not. A matching estimate more than
+  GPS_REACH from the GPS one is not taken;
 - without GPS, with street/sparse: from the matching (``first_guess``, ``scale_from_matching``). The
   street step first runs at 1 when the cameras sit 1-4 frame units above the COLMAP points under
   them, else at the scale that puts them 2 m up; then the route's façades are placed on the
@@ -46,6 +49,7 @@ MAX_PASSES = 3        # street passes the matching may ask for
 # scale's reach (refine.exhaustive scale.max_deviation): within it, refine measures the scale better
 KEEP_BAND = 0.05
 RESCAN_REACH = 0.1    # a later pass scans the factors within 1 ± this of its scale
+GPS_REACH = 0.15      # a matching estimate this far (relative) from the GPS estimate is not taken
 
 
 def parse_street_scale(value: Any, where: str) -> float | None:
@@ -127,6 +131,7 @@ def scale_from_matching(scale: StreetScale, street, overview, capture: StreetCap
     passes = int(figures.get("passes", 0)) + 1
     model = capture.require_sparse("the street scale from the matching")
     cams = street.level(model.centres[capture_order(model.image_names)])[:, :2]
+    gps = scale.estimate if scale.source == "gps" else None
     if passes == 1:
         h = camera_height(street, capture)
         if h is None or h <= 0:
@@ -142,15 +147,25 @@ def scale_from_matching(scale: StreetScale, street, overview, capture: StreetCap
         scan = scan_scale(street, overview, cams, 1.0 / r, r, cfg, search, coarse=False, workers=workers)
     estimate = scale.value / scan.factor
     figures.update({"passes": passes, f"pass_{passes}": {"at": round(scale.value, 6), **scan.figures()}})
+    if gps is not None and abs(np.log(estimate / gps)) > np.log1p(GPS_REACH):
+        figures["reason"] = f"matching scale {estimate:.4g} is more than {GPS_REACH:.0%} from the GPS one"
+        return replace(scale, matching=figures, settled=True)
+    if gps is not None:
+        figures["estimate"] = round(float(estimate), 6)
     # a later pass keeps its own scale when the scan agrees with it (no snap to 1 that would ping-pong)
     value = 1.0 if passes == 1 and abs(estimate - 1.0) <= METRIC_TOLERANCE else estimate
     lo_s, hi_s = SCALE_RANGE
     if not lo_s <= value <= hi_s:
         raise SceneError(f"{capture.sparse_path}: the street frame's scale found by the matching ({value:.4g}) is "
                          f"outside [{lo_s:g}, {hi_s:g}]: set street_scale, or give street/gps.csv")
-    if abs(value / scale.value - 1.0) <= KEEP_BAND or passes >= MAX_PASSES:
-        return replace(scale, estimate=estimate, matching=figures, settled=True)
-    return StreetScale(value, "matching", estimate=estimate, matching=figures, settled=False)
+    kept = replace(scale, matching=figures, settled=True)
+    if gps is None:
+        kept = replace(kept, estimate=estimate)
+    # a GPS first guess is only as good as its fixes: the matching's estimate replaces it beyond 2 %
+    band = METRIC_TOLERANCE if gps is not None else KEEP_BAND
+    if abs(value / scale.value - 1.0) <= band or passes >= MAX_PASSES:
+        return kept
+    return replace(kept, value=value, settled=False)
 
 
 def scale_from_gps(scene: Scene) -> StreetScale | None:
@@ -190,9 +205,8 @@ def scale_from_gps(scene: Scene) -> StreetScale | None:
     if not lo <= value <= hi:
         raise SceneError(f"{scene.files.gps}: the street frame's scale estimated from GPS ({value:.4g}) is outside "
                          f"[{lo:g}, {hi:g}]: check the fixes, or set street_scale")
-    if abs(value - 1.0) <= METRIC_TOLERANCE:
-        return StreetScale(1.0, "gps", len(r), estimate=value)
-    return StreetScale(value, "gps", len(r), estimate=value)
+    first = 1.0 if abs(value - 1.0) <= METRIC_TOLERANCE else value
+    return StreetScale(first, "gps", len(r), estimate=value, matching={"passes": 0}, settled=False)
 
 
 def camera_height(street, capture: StreetCapture) -> float | None:

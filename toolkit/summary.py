@@ -51,6 +51,8 @@ def print_summary(res, console: Console | None = None) -> None:
                "not metric)", "matching": "from the façades against the over-view (no GPS)",
                "scene": "from scene.yaml", "recipe": "from the recipe"}[scale.source]
         est = f", estimate {scale.estimate:.4f}" if scale.estimate is not None and scale.estimate != scale.value else ""
+        if scale.source == "gps" and (scale.matching or {}).get("estimate") is not None:
+            how = f"{how}, checked against the over-view (matching estimate {scale.matching['estimate']:.4f})"
         table.add_row("street scale (frame units per metre)", f"{scale.value:.4f}{est} {how}")
     from toolkit.outputs import height_kind
 

@@ -155,6 +155,10 @@ class StreetScale:
         if self.source == "gps":
             out["gps_estimate"] = round(float(self.estimate), 6)
             out["gps_pairs"] = self.pairs
+            if self.matching and "estimate" in self.matching:
+                out["matching_estimate"] = self.matching["estimate"]
+            if self.matching and self.matching.get("passes"):
+                out["matching"] = self.matching
         if self.source == "matching":
             out["matching_estimate"] = None if self.estimate is None else round(float(self.estimate), 6)
             out["matching"] = self.matching

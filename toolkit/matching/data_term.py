@@ -24,10 +24,18 @@ from toolkit.matching import anchors as AN
 from toolkit.matching import chamfer as CH
 from toolkit.matching.candidates import Candidates, PairGeometry
 from toolkit.matching.config import MatchingConfig
-from toolkit.matching.gps import GpsConfig, PruningPrior, gps_prior, prior_penalty, prior_radii
+from toolkit.matching.gps import (
+    GpsConfig,
+    GpsPrior,
+    PruningPrior,
+    gps_predict,
+    gps_prior,
+    prior_penalty,
+    prior_radii,
+)
 from toolkit.matching.mrf import wrap_angle
 from toolkit.matching.pose_search import Scored, StreetSamples
-from toolkit.matching.route_prior import RoutePlacement, RoutePriorConfig, capture_order, place_route
+from toolkit.matching.route_prior import GpsTrack, RoutePlacement, RoutePriorConfig, capture_order, place_route
 from toolkit.observe import DebugPoints2D, DebugText
 from toolkit.types import DataCosts, OverviewSegments, SparseModel, StreetSegments
 
@@ -53,12 +61,19 @@ def null_costs(n_edges: int, n_labels: int) -> DataCosts:
 
 def choose_prior(capture: StreetCapture | None, street: StreetSegments, overview: OverviewSegments, gps: GpsConfig,
                  route: RoutePriorConfig, obs) -> PruningPrior:
-    """GPS fixes, else the route placed by its façades (``route.enabled``, street/sparse), else none."""
+    """GPS fixes, else the route placed by its façades (``route.enabled``, street/sparse), else none.
+    With both (``route.with_gps``), each segment the placement puts within its GPS radius takes the
+    placement's prior (``gated_prior``)."""
     prior, source, figures = None, None, None
+    has_sparse = capture is not None and capture.sparse_path is not None
     if capture is not None and capture.gps_path is not None:
         prior = gps_prior(capture, street, n_local=gps.fit_fixes, warn=obs.warn)
         source = "gps" if prior is not None else None
-    if prior is None and route.enabled and capture is not None and capture.sparse_path is not None:
+    if prior is not None and route.enabled and route.with_gps and has_sparse:
+        track = gps_track(capture, street, gps)
+        placed = place_route_by_facades(street, overview, capture.sparse, route, obs, track)
+        return gated_prior(prior, placed, len(street.centroids), gps, route.gps_agree_sigmas * track.tolerance_m)
+    if prior is None and route.enabled and has_sparse:
         placed = place_route_by_facades(street, overview, capture.sparse, route, obs)
         prior, figures = placed.prior, placed.figures()
         source = "route_placement" if prior is not None else None
@@ -66,12 +81,38 @@ def choose_prior(capture: StreetCapture | None, street: StreetSegments, overview
     return PruningPrior(prior, radius, source, figures)
 
 
+def gps_track(capture: StreetCapture, street: StreetSegments, gps: GpsConfig) -> GpsTrack:
+    """Where the fixes put each COLMAP camera (capture order), and how far they may be trusted."""
+    model = capture.sparse
+    fit = gps_predict(capture, street, street.level(model.centres[capture_order(model.image_names)])[:, :2],
+                      n_local=gps.fit_fixes)
+    return GpsTrack(fit.position, max(fit.sigma_m, float(np.median(fit.fit_rms_m))))
+
+
+def gated_prior(fixes: GpsPrior, placed: RoutePlacement, n_seg: int, cfg: GpsConfig,
+                agree_m: float) -> PruningPrior:
+    """The GPS prior, where the route placement agrees with it the placement's: a segment whose
+    placed centre lies within ``agree_m`` of its GPS position takes the placement's position,
+    heading and radius. The GPS keeps the placement from sliding to a look-alike block; the
+    placement is the tighter."""
+    radius = prior_radii(fixes, n_seg, cfg)
+    if placed.prior is None:
+        return PruningPrior(fixes, radius, "gps", {"gated_share": 0.0})
+    route = placed.prior
+    agree = np.linalg.norm(route.position - fixes.position, axis=1) <= agree_m
+    figures = {"gated_share": round(float(agree.mean()), 4) if n_seg else 0.0}
+    prior = GpsPrior(position=np.where(agree[:, None], route.position, fixes.position),
+                     angle=np.where(agree, route.angle, fixes.angle), n_fixes=fixes.n_fixes, sigma_m=fixes.sigma_m,
+                     fit_rms_m=fixes.fit_rms_m)
+    return PruningPrior(prior, np.where(agree, prior_radii(route, n_seg, cfg), radius), "gps", figures)
+
+
 def place_route_by_facades(street: StreetSegments, overview: OverviewSegments, model: SparseModel,
-                           cfg: RoutePriorConfig, obs) -> RoutePlacement:
-    """The route of the COLMAP cameras placed by its façades (``toolkit.matching.route_prior``); a
-    warning when unused."""
+                           cfg: RoutePriorConfig, obs, track: GpsTrack | None = None) -> RoutePlacement:
+    """The route of the COLMAP cameras placed by its façades (``toolkit.matching.route_prior``), near
+    their GPS ``track`` when given; a warning when unused."""
     cams = street.level(model.centres[capture_order(model.image_names)])[:, :2]
-    placed = place_route(street, overview, cams, cfg)
+    placed = place_route(street, overview, cams, cfg, track=track)
     obs.debug("route_placement", DebugText(placed.describe()))
     if placed.prior is None:
         obs.warn(f"route placement not used ({placed.reason}): every over-view pair is searched")

@@ -85,6 +85,14 @@ def gps_prior(capture: StreetCapture, street: StreetSegments, n_local: int = 100
               warn=None) -> GpsPrior | None:
     """The prior from the capture's fixes and COLMAP cameras (in the CRS of its scene), or None (with
     a warning) when fewer than 3 fixes match COLMAP images."""
+    cent = np.asarray(street.centroids, dtype=np.float64).reshape(-1, 2)
+    return gps_predict(capture, street, cent, n_local, default_sigma_m, warn)
+
+
+def gps_predict(capture: StreetCapture, street: StreetSegments, query_xy: np.ndarray, n_local: int = 100,
+                default_sigma_m: float = 10.0, warn=None) -> GpsPrior | None:
+    """Scene x, y of levelled street points ``query_xy`` (Q,2), each from the rigid fit of its
+    ``n_local`` nearest fixes (as a ``GpsPrior`` over the Q points), or None as ``gps_prior``."""
     from pyproj import Transformer
 
     from toolkit.io.gps import match_images
@@ -105,12 +113,12 @@ def gps_prior(capture: StreetCapture, street: StreetSegments, n_local: int = 100
     sig = np.where(np.isfinite(sigma[hit]) & (sigma[hit] > 0), sigma[hit], default_sigma_m)
     origin = world.mean(axis=0)  # local origin: UTM values would cost precision in the fit
     local = world - origin
-    cent = np.asarray(street.centroids, dtype=np.float64).reshape(-1, 2)
+    query = np.asarray(query_xy, dtype=np.float64).reshape(-1, 2)
     k = min(n_local, len(cam))
     from scipy.spatial import cKDTree
 
-    _, nn = cKDTree(cam).query(cent, k=k)
-    nn = nn.reshape(len(cent), k)
+    _, nn = cKDTree(cam).query(query, k=k)
+    nn = nn.reshape(len(query), k)
     src, dst, w = cam[nn], local[nn], 1.0 / sig[nn] ** 2
     theta, t = rigid_fit_2d(src, dst, w)
     # one trimmed refit: drop fixes far off the first fit (wrong fixes, multipath)
@@ -118,7 +126,7 @@ def gps_prior(capture: StreetCapture, street: StreetSegments, n_local: int = 100
     thr = np.maximum(3 * np.median(res, axis=1, keepdims=True), 3 * sig[nn])
     inlier = res <= thr
     theta, t = rigid_fit_2d(src, dst, w * inlier)
-    pos = _apply(theta, t, cent) + origin
+    pos = _apply(theta, t, query) + origin
     res = np.linalg.norm(_apply(theta[:, None], t[:, None], src) - dst, axis=-1)
     rms = np.sqrt((res ** 2 * inlier).sum(axis=1) / np.maximum(inlier.sum(axis=1), 1))
     return GpsPrior(position=pos, angle=theta, n_fixes=int(hit.sum()), sigma_m=float(np.median(sig)),

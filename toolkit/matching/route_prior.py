@@ -8,6 +8,12 @@ place, and each street segment takes the placement of the windows around its rou
 The result is a ``GpsPrior``: the data term prunes and weighs its candidates with it exactly as
 with GPS fixes, so that a search over every over-view edge pair is no longer needed.
 
+With GPS fixes as well (``with_gps``), each window also tries the placement that puts its cameras
+on the fixes' track, and the chain pays for a placement far from that track: the fixes keep the
+placement from a look-alike block, the façades place the route closer than metres-off fixes can.
+The data term then takes the placement's prior for every segment it puts near the segment's GPS
+position (``toolkit.matching.data_term.gated_prior``).
+
 Only outlines facing open ground are kept: the walls between touching buildings (terraced houses
 in OSM) are never seen from the street, and in a dense city they make any placement look good.
 """
@@ -31,6 +37,12 @@ class RoutePriorConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     enabled: bool = Field(True, description="without GPS, place the route by its façades and prune as with GPS")
+    with_gps: bool = Field(True, description="with GPS too: place the route near the fixes' track; segments placed "
+                                             "near their fixes take its prior")
+    gps_cost: float = Field(0.5, ge=0, description="cost of a window placement at least gps_agree_sigmas from the "
+                                                   "GPS track (unitless, as a window score)")
+    gps_agree_sigmas: float = Field(2.0, gt=0, description="the distance from the GPS track that costs in full, in "
+                                                           "the fixes' σ or fit RMS, whichever is larger")
     window_m: float = Field(250.0, gt=20, description="route length of each placement window (metres)")
     cell_m: float = Field(4.0, gt=0, description="cell size of the correlation maps (metres)")
     tolerance_m: float = Field(6.0, gt=0, description="a façade point farther than this from an outline scores 0")
@@ -251,12 +263,20 @@ def agree_m(cfg: RoutePriorConfig, gap_m: float | np.ndarray) -> float | np.ndar
 
 
 def _chain(windows: list[list[Placement]], links: list[np.ndarray], cfg: RoutePriorConfig,
-           gaps_m: np.ndarray) -> tuple[list[int], np.ndarray]:
-    """Viterbi over windows: maximise Σ score − link_cost·Σ min(disagreement / agree, 1)."""
+           gaps_m: np.ndarray, anchors: list[_WindowAnchor] | None = None,
+           gps_tolerance_m: float = 1.0) -> tuple[list[int], np.ndarray]:
+    """Viterbi over windows: maximise Σ (score − GPS cost) − link_cost·Σ min(disagreement / agree, 1)."""
     def link(a: Placement, b: Placement, cams: np.ndarray) -> float:
         return float(np.sqrt(np.mean(np.sum((a.apply(cams) - b.apply(cams)) ** 2, axis=1))))
 
-    value = np.array([p.score for p in windows[0]])
+    def unary(w: int) -> np.ndarray:
+        score = np.array([p.score for p in windows[w]])
+        if anchors is None:
+            return score
+        d = np.array([anchors[w].distance(p) for p in windows[w]])
+        return score - cfg.gps_cost * np.minimum(d / (cfg.gps_agree_sigmas * gps_tolerance_m), 1.0)
+
+    value = unary(0)
     back = []
     dist_tables = []
     for w in range(1, len(windows)):
@@ -264,7 +284,7 @@ def _chain(windows: list[list[Placement]], links: list[np.ndarray], cfg: RoutePr
         d = np.array([[link(a, b, links[w - 1]) for b in windows[w]] for a in windows[w - 1]])
         total = value[:, None] - cfg.link_cost * np.minimum(d / agree, 1.0)
         back.append(np.argmax(total, axis=0))
-        value = total.max(axis=0) + np.array([p.score for p in windows[w]])
+        value = total.max(axis=0) + unary(w)
         dist_tables.append(d)
     pick = [int(np.argmax(value))]
     for w in range(len(windows) - 1, 0, -1):
@@ -272,6 +292,35 @@ def _chain(windows: list[list[Placement]], links: list[np.ndarray], cfg: RoutePr
     pick.reverse()
     link_m = np.array([dist_tables[w - 1][pick[w - 1], pick[w]] for w in range(1, len(windows))])
     return pick, link_m
+
+
+@dataclass(frozen=True)
+class GpsTrack:
+    """Where the GPS fixes put the cameras: position (C,2) scene x, y of each camera (capture order,
+    from the local fits of ``toolkit.matching.gps``); tolerance_m: the distance a right placement may
+    have from it (the fixes' σ or the fits' RMS, whichever is larger)."""
+
+    position: np.ndarray
+    tolerance_m: float
+
+
+@dataclass(frozen=True)
+class _WindowAnchor:
+    """A window's cameras (levelled xy) and their GPS positions (scene xy)."""
+
+    cams: np.ndarray
+    gps: np.ndarray
+
+    def distance(self, p: Placement) -> float:
+        return float(np.sqrt(np.mean(np.sum((p.apply(self.cams) - self.gps) ** 2, axis=1))))
+
+    def placement(self, pivot: np.ndarray) -> Placement:
+        """The rigid placement that puts the cameras on their GPS positions."""
+        from toolkit.matching.gps import rigid_fit_2d
+
+        theta, t0 = rigid_fit_2d(self.cams[None], self.gps[None], np.ones((1, len(self.cams))))
+        c, s = np.cos(theta[0]), np.sin(theta[0])
+        return Placement(theta=float(theta[0]), t=np.array([[c, -s], [s, c]]) @ pivot + t0[0], pivot=pivot, score=0.0)
 
 
 @dataclass(frozen=True)
@@ -297,9 +346,11 @@ def route_maps(overview: OverviewSegments, cfg: RoutePriorConfig) -> RouteMaps:
 
 
 def place_route(street: StreetSegments, overview: OverviewSegments, cameras_xy: np.ndarray,
-                cfg: RoutePriorConfig, maps: RouteMaps | None = None) -> RoutePlacement:
+                cfg: RoutePriorConfig, maps: RouteMaps | None = None, track: GpsTrack | None = None) -> RoutePlacement:
     """The placement of the route (levelled street xy → scene xy) and the prior it gives each segment.
-    ``maps``: ``route_maps(overview, cfg)`` when already made."""
+    ``maps``: ``route_maps(overview, cfg)`` when already made. ``track``: the cameras' GPS positions
+    (same order as ``cameras_xy``): each window also tries the placement that fits them, and the
+    chain pays for placements far from them."""
     arc = route_arclength(cameras_xy)
     pts, seg = _facade_cells(street, cfg.cell_m / 2)
     from scipy.spatial import cKDTree
@@ -310,23 +361,30 @@ def place_route(street: StreetSegments, overview: OverviewSegments, cameras_xy: 
     maps = maps or route_maps(overview, cfg)
     omap, fine = maps.coarse, maps.fine
     thetas = np.deg2rad(np.arange(0.0, 360.0, cfg.rotation_step_deg))
-    windows, centres, window_pts = [], [], []
+    windows, centres, window_pts, anchors, by_gps = [], [], [], [], []
     for w0 in starts:
         sel = (s_pt >= w0) & (s_pt < w0 + cfg.window_m)
         if sel.sum() < 30:  # a park or an open square: the neighbours carry it
             continue
         found = _window_placements(omap, maps.spectrum, maps.shape, pts[sel], thetas, cfg.candidates_per_window)
         found = _refine(fine, pts[sel], found, cfg)[:cfg.placements_per_window]
+        if found and track is not None:
+            cams = (arc >= w0) & (arc < w0 + cfg.window_m)
+            anchors.append(_WindowAnchor(cameras_xy[cams], track.position[cams]))
+            by_gps.append(_refine(fine, pts[sel], [anchors[-1].placement(found[0].pivot)], cfg, reach=2.0))
         if found:
             windows.append(found)
             window_pts.append(pts[sel])
             centres.append(w0 + cfg.window_m / 2)
     centres = np.asarray(centres)
     windows = _seed_from_neighbours(fine, windows, window_pts, cfg)
+    if by_gps:  # after the seeding, which keeps only the best-scoring placements
+        windows = [sorted(found + extra, key=lambda q: -q.score) for found, extra in zip(windows, by_gps)]
     if not windows:
         return RoutePlacement(None, (), centres, np.zeros(0), np.zeros(0), 0.0, "no window with façades")
     links = [_cameras_between(cameras_xy, arc, a, b) for a, b in zip(centres[:-1], centres[1:])]
-    pick, link_m = _chain(windows, links, cfg, np.diff(centres))
+    chain_gps = {"anchors": anchors, "gps_tolerance_m": track.tolerance_m} if track is not None else {}
+    pick, link_m = _chain(windows, links, cfg, np.diff(centres), **chain_gps)
     agree = agree_m(cfg, np.diff(centres))
     for _ in range(2):  # a window off the chain tries its chosen neighbours' placements, then the chain again
         off = np.zeros(len(windows), bool)
@@ -340,7 +398,7 @@ def place_route(street: StreetSegments, overview: OverviewSegments, cameras_xy: 
                                pivot=pivot, score=0.0) for n in (w - 1, w + 1) if 0 <= n < len(windows)]
             windows[w] = sorted(windows[w] + _refine(fine, window_pts[w], tried, cfg, reach=2.0),
                                 key=lambda q: -q.score)
-        pick, link_m = _chain(windows, links, cfg, np.diff(centres))
+        pick, link_m = _chain(windows, links, cfg, np.diff(centres), **chain_gps)
     chosen = tuple(windows[w][h] for w, h in enumerate(pick))
     scores = np.array([p.score for p in chosen])
     top_share = float(np.mean([h == 0 for h in pick]))
