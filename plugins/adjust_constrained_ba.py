@@ -23,7 +23,15 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from toolkit.adjust.ba import BAParams, adjust_ceres, adjust_scipy, degenerate_centres, straight_track
+from toolkit.adjust.ba import (
+    BAParams,
+    adjust_ceres,
+    adjust_scipy,
+    degenerate_centres,
+    prior_variances,
+    straight_track,
+)
+from toolkit.adjust.fixes import camera_fixes, fuse_fixes
 from toolkit.adjust.model import (
     bad_observations,
     place_unadjusted,
@@ -75,6 +83,9 @@ class ConstrainedBA(Stage):
         remake_points: bool = Field(
             True, description="Move every street point with the adjusted pose change of the camera that "
                               "captured it (off: the warp's points stand)")
+        gps_prior: bool = Field(
+            True, description="With street/gps.csv: each fix joins its camera's position prior (x, y, weighted by "
+                              "the fix's σ and the prior's variance)")
         capture_sparse_gap_m: float = Field(
             10.0, gt=0, description="Only a sparse point within this distance names a street point's "
                                     "capture camera, else the nearest camera centre (m)")
@@ -130,6 +141,10 @@ class ConstrainedBA(Stage):
             partial(run_forked, adjust_ceres) if self._isolated() else adjust_ceres
         spread = registered_spread(model, registration) if p.prior_spread else None
         extra_var = None if spread is None else spread ** 2
+        fixes = camera_fixes(capture, model) if p.gps_prior else None
+        if fixes is not None:
+            C_prior, var = fuse_fixes(C_prior, prior_variances(len(C_prior), bp, extra_var), fixes)
+            extra_var = var - 1.0 / bp.lambda_
         res = solve(model, R_w, t_w, X_w, C_prior, bp, extra_var)
         iterations = res.iterations
         X = place_unadjusted(model, res)

@@ -211,7 +211,8 @@ def test_prior_variances_add_the_warp_spread_to_one_over_lambda():
 
     p = BAParams(lambda_=20.0)
     assert np.allclose(prior_variances(3, p, None), 0.05)
-    assert np.allclose(prior_variances(3, p, np.array([0.0, 0.01, 1.0])), [0.05, 0.06, 1.05])
+    assert np.allclose(prior_variances(3, p, np.array([0.0, 0.01, 1.0])), np.array([[0.05], [0.06], [1.05]]))
+    assert prior_variances(3, p, np.ones((3, 3))).shape == (3, 3)
 
 
 def test_camera_spread_loosens_only_the_cameras_the_warp_places_uncertainly(small_problem):
@@ -232,3 +233,43 @@ def test_camera_spread_loosens_only_the_cameras_the_warp_places_uncertainly(smal
     loose = ConstrainedBA()(dataclasses.replace(off, camera_spread_m=spread), scene, StreetCapture(scene), NullObserver())
     err = lambda m: np.linalg.norm(m.centres[k] - truth["Cs"][k])
     assert err(loose.model) < err(held.model)
+
+
+def test_a_fix_moves_a_loose_prior_and_not_a_tight_one():
+    from toolkit.adjust.fixes import CameraFixes, fuse_fixes
+
+    C = np.array([[0.0, 0.0, 2.0], [100.0, 0.0, 2.0], [200.0, 0.0, 2.0]])
+    var = np.array([0.05, 25.0, 25.0])
+    fixes = CameraFixes(np.array([0, 1]), np.array([[10.0, 0.0], [110.0, 0.0]]), np.array([5.0, 5.0]))
+    fused, fvar = fuse_fixes(C, var, fixes)
+    assert abs(fused[0, 0] - 10.0 * 0.05 / 25.05) < 1e-9      # 0.2 % of the way to a 5 m fix
+    assert np.allclose(fused[1], [105.0, 0.0, 2.0]) and np.allclose(fvar[1], [12.5, 12.5, 25.0])
+    assert np.array_equal(fused[2], C[2]) and np.allclose(fvar[2], 25.0)   # no fix: unchanged
+    assert np.array_equal(fused[:, 2], C[:, 2])                # heights keep the warp's
+
+
+def test_gps_fixes_hold_cameras_the_warp_placed_loosely(small_problem, tmp_path):
+    """Cameras pushed 3 m off with a matching spread (what a wrong blend or a bridge gives over a
+    stretch): the images cannot tell where the stretch lies, fixes of σ 1 m at the true centres can."""
+    from pyproj import Transformer
+
+    model, reg, truth, _ = small_problem
+    root = tmp_path / "gps-scene"
+    (root / "street").mkdir(parents=True)
+    write_model(model, root / "street/sparse", binary=True)
+    lon, lat = Transformer.from_crs("EPSG:32617", "EPSG:4326", always_xy=True).transform(
+        truth["Cs"][:, 0], truth["Cs"][:, 1])
+    (root / "street/gps.csv").write_text("image_name,lon,lat,sigma_m\n" + "".join(
+        f"{n},{a:.9f},{b:.9f},1\n" for n, a, b in zip(model.image_names, lon, lat)))
+    write_manifest(root, "ba", "EPSG:32617", {"street": {"sparse": "street/sparse", "gps": "street/gps.csv"}})
+    scene = load_scene(root)
+    loose = slice(None)
+    C = -np.einsum("cba,cb->ca", reg.R, reg.t)
+    C[loose] += [0.0, 3.0, 0.0]
+    spread = np.zeros(len(reg.image_names))
+    spread[loose] = 3.0
+    off = dataclasses.replace(reg, t=-np.einsum("cab,cb->ca", reg.R, C), camera_spread_m=spread)
+    images = ConstrainedBA.from_config({"gps_prior": False})(off, scene, StreetCapture(scene), NullObserver())
+    fixed = ConstrainedBA()(off, scene, StreetCapture(scene), NullObserver())
+    err = lambda m: np.linalg.norm(m.centres[loose] - truth["Cs"][loose], axis=1).mean()
+    assert err(fixed.model) < 0.5 * err(images.model)

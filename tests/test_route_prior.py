@@ -124,3 +124,6 @@ def test_a_segment_placed_far_from_its_gps_position_keeps_the_gps_prior():
     out = gated_prior(fixes, placed, 2, GpsConfig(), agree_m=10.0)
     assert np.allclose(out.prior.position, [[3.0, 0.0], [100.0, 0.0]]) and np.allclose(out.prior.angle, [0.1, 0.0])
     assert out.radius_m[0] < out.radius_m[1] and out.figures["gated_share"] == 0.5
+    # fixes as tight as the placement (σ 3 m: the same radius) keep their own prior
+    tight = dataclasses.replace(fixes, sigma_m=3.0, fit_rms_m=np.zeros(2))
+    assert gated_prior(tight, placed, 2, GpsConfig(), agree_m=10.0).figures["gated_share"] == 0.0

@@ -78,11 +78,11 @@ def _tracks(model: SparseModel):
 
 
 def prior_variances(C: int, p: BAParams, extra_var_m2: np.ndarray | None) -> np.ndarray:
-    """(C,) variance (m², per axis) of each camera's prior position: 1/λ (the paper's λ‖ΔC‖²), plus
-    ``extra_var_m2`` where given (e.g. the warp's uncertainty of that camera's position)."""
-    var = np.full(C, 1.0 / p.lambda_)
+    """(C,3) variance (m², per axis) of each camera's prior position: 1/λ (the paper's λ‖ΔC‖²), plus
+    ``extra_var_m2`` where given ((C,) or (C,3): e.g. the warp's uncertainty of that camera's position)."""
+    var = np.full((C, 3), 1.0 / p.lambda_)
     if extra_var_m2 is not None:
-        var += np.asarray(extra_var_m2, np.float64)
+        var += np.asarray(extra_var_m2, np.float64).reshape(C, -1)
     return var
 
 
@@ -144,7 +144,7 @@ def adjust_ceres(model: SparseModel, R0: np.ndarray, t0: np.ndarray, X0: np.ndar
     for k in observed:
         prior = pycolmap.PosePrior()
         prior.position = C_prior[k] - origin
-        prior.position_covariance = np.eye(3) * var[k]
+        prior.position_covariance = np.diag(var[k])
         prior.coordinate_system = pycolmap.PosePriorCoordinateSystem.CARTESIAN
         prior.corr_data_id = rec.images[int(iid[k])].data_id
         priors.append(prior)
@@ -179,7 +179,7 @@ def adjust_scipy(model: SparseModel, R0: np.ndarray, t0: np.ndarray, X0: np.ndar
     C, P, K = len(R0), len(use_pts), len(img)
     C0 = -np.einsum("cba,cb->ca", R0, t0) - origin
     prior = C_prior - origin
-    sq = 1.0 / np.sqrt(prior_variances(len(C_prior), p, extra_var_m2))[:, None]
+    sq = 1.0 / np.sqrt(prior_variances(len(C_prior), p, extra_var_m2))
     cams = model.camera_ids[img]
     groups = [(model.cameras[int(c)], cams == c) for c in np.unique(cams)]
 

@@ -91,20 +91,22 @@ def gps_track(capture: StreetCapture, street: StreetSegments, gps: GpsConfig) ->
 
 def gated_prior(fixes: GpsPrior, placed: RoutePlacement, n_seg: int, cfg: GpsConfig,
                 agree_m: float) -> PruningPrior:
-    """The GPS prior, where the route placement agrees with it the placement's: a segment whose
-    placed centre lies within ``agree_m`` of its GPS position takes the placement's position,
-    heading and radius. The GPS keeps the placement from sliding to a look-alike block; the
-    placement is the tighter."""
+    """The GPS prior, where the route placement agrees with it and is the tighter the placement's: a
+    segment whose placed centre lies within ``agree_m`` of its GPS position, and whose placement
+    radius is below its GPS radius, takes the placement's position, heading and radius. The GPS
+    keeps the placement from sliding to a look-alike block."""
     radius = prior_radii(fixes, n_seg, cfg)
     if placed.prior is None:
         return PruningPrior(fixes, radius, "gps", {"gated_share": 0.0})
     route = placed.prior
-    agree = np.linalg.norm(route.position - fixes.position, axis=1) <= agree_m
+    route_radius = prior_radii(route, n_seg, cfg)
+    # where both agree, the tighter of the two (with fixes as good as the placement, the fixes' fit)
+    agree = (np.linalg.norm(route.position - fixes.position, axis=1) <= agree_m) & (route_radius < radius)
     figures = {"gated_share": round(float(agree.mean()), 4) if n_seg else 0.0}
     prior = GpsPrior(position=np.where(agree[:, None], route.position, fixes.position),
                      angle=np.where(agree, route.angle, fixes.angle), n_fixes=fixes.n_fixes, sigma_m=fixes.sigma_m,
                      fit_rms_m=fixes.fit_rms_m)
-    return PruningPrior(prior, np.where(agree, prior_radii(route, n_seg, cfg), radius), "gps", figures)
+    return PruningPrior(prior, np.where(agree, route_radius, radius), "gps", figures)
 
 
 def place_route_by_facades(street: StreetSegments, overview: OverviewSegments, model: SparseModel,
