@@ -84,7 +84,7 @@ class ConstrainedBA(Stage):
             True, description="Move every street point with the adjusted pose change of the camera that "
                               "captured it (off: the warp's points stand)")
         gps_prior: bool = Field(
-            True, description="With street/gps.csv: each fix joins its camera's position prior (x, y, weighted by "
+            False, description="With street/gps.csv: each fix joins its camera's position prior (x, y, weighted by "
                               "the fix's σ and the prior's variance)")
         capture_sparse_gap_m: float = Field(
             10.0, gt=0, description="Only a sparse point within this distance names a street point's "

@@ -270,6 +270,6 @@ def test_gps_fixes_hold_cameras_the_warp_placed_loosely(small_problem, tmp_path)
     spread[loose] = 3.0
     off = dataclasses.replace(reg, t=-np.einsum("cab,cb->ca", reg.R, C), camera_spread_m=spread)
     images = ConstrainedBA.from_config({"gps_prior": False})(off, scene, StreetCapture(scene), NullObserver())
-    fixed = ConstrainedBA()(off, scene, StreetCapture(scene), NullObserver())
+    fixed = ConstrainedBA.from_config({"gps_prior": True})(off, scene, StreetCapture(scene), NullObserver())
     err = lambda m: np.linalg.norm(m.centres[loose] - truth["Cs"][loose], axis=1).mean()
     assert err(fixed.model) < 0.5 * err(images.model)
