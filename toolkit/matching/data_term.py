@@ -62,8 +62,8 @@ def null_costs(n_edges: int, n_labels: int) -> DataCosts:
 def choose_prior(capture: StreetCapture | None, street: StreetSegments, overview: OverviewSegments, gps: GpsConfig,
                  route: RoutePriorConfig, obs) -> PruningPrior:
     """GPS fixes, else the route placed by its façades (``route.enabled``, street/sparse), else none.
-    With both (``route.with_gps``), each segment the placement puts within its GPS radius takes the
-    placement's prior (``gated_prior``)."""
+    With both (``route.with_gps``), the placement runs near the fixes' track and each segment it puts
+    near its GPS position, tighter than the fixes, takes its prior (``gated_prior``)."""
     prior, source, figures = None, None, None
     has_sparse = capture is not None and capture.sparse_path is not None
     if capture is not None and capture.gps_path is not None:
