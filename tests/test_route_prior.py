@@ -127,3 +127,18 @@ def test_a_segment_placed_far_from_its_gps_position_keeps_the_gps_prior():
     # fixes as tight as the placement (σ 3 m: the same radius) keep their own prior
     tight = dataclasses.replace(fixes, sigma_m=3.0, fit_rms_m=np.zeros(2))
     assert gated_prior(tight, placed, 2, GpsConfig(), agree_m=10.0).figures["gated_share"] == 0.0
+
+
+def test_the_placement_runs_with_gps_only_where_it_could_be_the_tighter_prior():
+    from toolkit.matching.data_term import _may_tighten
+    from toolkit.matching.gps import GpsConfig, GpsPrior
+
+    def fixes(sigma_m, rms_m):
+        return GpsPrior(position=np.zeros((2, 2)), angle=np.zeros(2), n_fixes=50, sigma_m=sigma_m,
+                        fit_rms_m=np.array([0.0, rms_m]))
+
+    cfg = RoutePriorConfig()
+    assert not _may_tighten(fixes(3.0, 1.0), cfg, GpsConfig())     # σ 3 m fixes: radius 20 m, as the placement's
+    assert _may_tighten(fixes(3.0, 8.0), cfg, GpsConfig())         # one segment's fit 8 m off: 29 m
+    assert _may_tighten(fixes(5.0, 0.0), cfg, GpsConfig())         # σ 5 m: 30 m
+    assert not _may_tighten(fixes(5.0, 0.0), cfg, GpsConfig(radius_m=20.0))  # one radius for both

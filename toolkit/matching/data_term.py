@@ -69,7 +69,7 @@ def choose_prior(capture: StreetCapture | None, street: StreetSegments, overview
     if capture is not None and capture.gps_path is not None:
         prior = gps_prior(capture, street, n_local=gps.fit_fixes, warn=obs.warn)
         source = "gps" if prior is not None else None
-    if prior is not None and route.enabled and route.with_gps and has_sparse:
+    if prior is not None and route.enabled and route.with_gps and has_sparse and _may_tighten(prior, route, gps):
         track = gps_track(capture, street, gps)
         placed = place_route_by_facades(street, overview, capture.sparse, route, obs, track)
         return gated_prior(prior, placed, len(street.centroids), gps, route.gps_agree_sigmas * track.tolerance_m)
@@ -79,6 +79,15 @@ def choose_prior(capture: StreetCapture | None, street: StreetSegments, overview
         source = "route_placement" if prior is not None else None
     radius = prior_radii(prior, len(street.centroids), gps) if prior is not None else None
     return PruningPrior(prior, radius, source, figures)
+
+
+def _may_tighten(fixes: GpsPrior, route: RoutePriorConfig, gps: GpsConfig) -> bool:
+    """Whether any segment's GPS radius exceeds the least radius a placement can have (its σ alone):
+    if none does, ``gated_prior`` would keep every GPS prior and the placement need not run."""
+    if gps.radius_m is not None:
+        return False
+    floor = gps.radius_sigmas * route.sigma_m + gps.radius_margin_m
+    return bool(np.any(prior_radii(fixes, len(fixes.position), gps) > floor))
 
 
 def gps_track(capture: StreetCapture, street: StreetSegments, gps: GpsConfig) -> GpsTrack:
