@@ -18,6 +18,7 @@ import numpy as np
 
 from toolkit.capture import StreetCapture
 from toolkit.errors import CrossviewError
+from toolkit.io.gps import DEFAULT_SIGMA_M
 from toolkit.refine.transforms import apply_each, scale_of
 from toolkit.street_scale import camera_height
 from toolkit.types import (
@@ -502,8 +503,8 @@ def gps_residuals(capture: StreetCapture | None, registration: Registration | No
         return out
     try:
         gps = capture.gps
-        fix_names, lonlat, sigma = list(gps.names), gps.lonlat, gps.sigma_m
-        fixes = _project_lonlat(lonlat, capture.scene.crs)
+        fix_names, sigma = list(gps.names), gps.sigma_m
+        fixes = gps.scene_xy(capture.scene.crs)
     except CrossviewError:
         return out  # a figure, not a step: an unreadable optional file must not fail the run
     index = {n: k for k, n in enumerate(names)}
@@ -515,12 +516,11 @@ def gps_residuals(capture: StreetCapture | None, registration: Registration | No
     res = np.linalg.norm(cam - fixes[hit], axis=1)
     sig = sigma[hit]
     sig = sig[np.isfinite(sig) & (sig > 0)]
-    out.update(gps_sigma_m=float(np.median(sig)) if len(sig) else DEFAULT_GPS_SIGMA_M,
+    out.update(gps_sigma_m=float(np.median(sig)) if len(sig) else DEFAULT_SIGMA_M,
                gps_residual_median_m=float(np.median(res)), gps_residual_p90_m=float(np.percentile(res, 90)))
     return out
 
 
-DEFAULT_GPS_SIGMA_M = 10.0  # as toolkit.matching.gps assumes when gps.csv states none
 
 
 # --- helpers ------------------------------------------------------------------------------------
@@ -537,13 +537,6 @@ def _output_cameras(registration: Registration | None, cameras: AdjustedCameras 
     if registration is not None and len(registration.image_names):
         return registration.image_names, -np.einsum("cji,cj->ci", registration.R, registration.t)
     return (), np.zeros((0, 3))
-
-
-def _project_lonlat(lonlat: np.ndarray, crs: str) -> np.ndarray:
-    from pyproj import Transformer
-
-    east, north = Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform(lonlat[:, 0], lonlat[:, 1])
-    return np.column_stack([east, north])
 
 
 def _round(v: Any) -> Any:

@@ -171,8 +171,6 @@ def scale_from_matching(scale: StreetScale, street, overview, capture: StreetCap
 
 def scale_from_gps(scene: Scene) -> StreetScale | None:
     """The median ratio of camera-centre to fix distances over fix pairs 50-500 m apart (None: < 20 pairs)."""
-    from pyproj import Transformer
-
     from toolkit.io.gps import match_images, read_gps_csv
     from toolkit.scene import read_sparse_raw
 
@@ -182,9 +180,7 @@ def scale_from_gps(scene: Scene) -> StreetScale | None:
     hit = np.flatnonzero(image >= 0)
     if len(hit) < 3:
         return None
-    east, north = Transformer.from_crs("EPSG:4326", scene.crs, always_xy=True).transform(
-        fixes.lonlat[hit, 0], fixes.lonlat[hit, 1])
-    world = np.column_stack([east, north])
+    world = fixes.scene_xy(scene.crs)[hit]
     cams = model.centres[image[hit]]
     # pairs along the capture order, at every offset whose fixes are 50-500 m apart
     ratios, count = [], 0

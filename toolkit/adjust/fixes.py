@@ -4,7 +4,7 @@ Each camera's prior is its warped centre with variance v (1/λ plus the warp's u
 per axis). A camera with a fix of σ (scene x, y) gets the product of the two normal densities in
 x and y: centre (x/v + g/σ²) / (1/v + 1/σ²), variance 1 / (1/v + 1/σ²); its height keeps the
 warp's. A camera the registration placed well (v ≈ 1/λ = 0.05 m²) barely moves towards a 5 m
-fix (weight 0.2 %), while one the blend or the bridge placed loosely (v of metres²) is held by the
+fix (weight 0.2 %); a fix without σ counts as 10 m, while one the blend or the bridge placed loosely (v of metres²) is held by the
 fixes around it, which the reprojections tie together. See docs/remake.md.
 """
 
@@ -18,9 +18,6 @@ from toolkit.capture import StreetCapture
 from toolkit.errors import CrossviewError
 from toolkit.types import SparseModel
 
-DEFAULT_SIGMA_M = 10.0  # as toolkit.matching.gps assumes when gps.csv states none
-
-
 @dataclass(frozen=True)
 class CameraFixes:
     """camera: (F,) index of the fixed camera in the model; xy: (F,2) scene x, y; sigma_m: (F,)."""
@@ -32,8 +29,6 @@ class CameraFixes:
 
 def camera_fixes(capture: StreetCapture, model: SparseModel) -> CameraFixes | None:
     """The fixes of street/gps.csv that name cameras of ``model``, in the scene CRS (None: none)."""
-    from pyproj import Transformer
-
     from toolkit.io.gps import match_images
 
     if capture.gps_path is None:
@@ -46,11 +41,8 @@ def camera_fixes(capture: StreetCapture, model: SparseModel) -> CameraFixes | No
     hit = image >= 0
     if not hit.any():
         return None
-    east, north = Transformer.from_crs("EPSG:4326", capture.scene.crs, always_xy=True).transform(
-        gps.lonlat[hit, 0], gps.lonlat[hit, 1])
-    sigma = gps.sigma_m[hit]
-    sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma, DEFAULT_SIGMA_M)
-    return CameraFixes(image[hit].astype(np.int64), np.column_stack([east, north]), sigma.astype(np.float64))
+    return CameraFixes(image[hit].astype(np.int64), gps.scene_xy(capture.scene.crs)[hit],
+                       gps.sigma_or_default()[hit].astype(np.float64))
 
 
 def fuse_fixes(C_prior: np.ndarray, var_m2: np.ndarray, fixes: CameraFixes) -> tuple[np.ndarray, np.ndarray]:

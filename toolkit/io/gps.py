@@ -32,6 +32,9 @@ _DMS = re.compile(r"^\s*([+-]?\d+(?:\.\d+)?)(?:\s*(?:deg|°)\s*(\d+(?:\.\d+)?)?'
                   re.IGNORECASE)
 
 
+DEFAULT_SIGMA_M = 10.0  # the σ assumed for a fix that states none
+
+
 @dataclass(frozen=True)
 class GpsFixes:
     """names: (N,) image names as written; lonlat: (N,2) WGS 84 degrees; sigma_m: (N,) (NaN: not given)."""
@@ -42,6 +45,19 @@ class GpsFixes:
 
     def __len__(self) -> int:
         return len(self.names)
+
+    def scene_xy(self, crs: str) -> np.ndarray:
+        """(N,2) the fixes' x, y in ``crs``."""
+        from pyproj import Transformer
+
+        east, north = Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform(self.lonlat[:, 0],
+                                                                                      self.lonlat[:, 1])
+        return np.column_stack([east, north])
+
+    def sigma_or_default(self, default_m: float | None = None) -> np.ndarray:
+        """(N,) the stated σ (m), ``default_m`` (DEFAULT_SIGMA_M) where none or a non-positive one is given."""
+        default_m = DEFAULT_SIGMA_M if default_m is None else default_m
+        return np.where(np.isfinite(self.sigma_m) & (self.sigma_m > 0), self.sigma_m, default_m)
 
 
 def read_gps_csv(path: str | Path) -> GpsFixes:

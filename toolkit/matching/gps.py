@@ -81,7 +81,7 @@ def _apply(theta: np.ndarray, t: np.ndarray, xy: np.ndarray) -> np.ndarray:
                      s[..., 0] * xy[..., 0] + c[..., 0] * xy[..., 1]], axis=-1) + t
 
 
-def gps_prior(capture: StreetCapture, street: StreetSegments, n_local: int = 100, default_sigma_m: float = 10.0,
+def gps_prior(capture: StreetCapture, street: StreetSegments, n_local: int = 100, default_sigma_m: float | None = None,
               warn=None) -> GpsPrior | None:
     """The prior from the capture's fixes and COLMAP cameras (in the CRS of its scene), or None (with
     a warning) when fewer than 3 fixes match COLMAP images."""
@@ -90,15 +90,13 @@ def gps_prior(capture: StreetCapture, street: StreetSegments, n_local: int = 100
 
 
 def gps_predict(capture: StreetCapture, street: StreetSegments, query_xy: np.ndarray, n_local: int = 100,
-                default_sigma_m: float = 10.0, warn=None) -> GpsPrior | None:
+                default_sigma_m: float | None = None, warn=None) -> GpsPrior | None:
     """Scene x, y of levelled street points ``query_xy`` (Q,2), each from the rigid fit of its
     ``n_local`` nearest fixes (as a ``GpsPrior`` over the Q points), or None as ``gps_prior``."""
-    from pyproj import Transformer
-
     from toolkit.io.gps import match_images
 
     fixes = capture.gps
-    names, lonlat, sigma = list(fixes.names), fixes.lonlat, fixes.sigma_m
+    names = list(fixes.names)
     model = capture.require_sparse("unary.distance_map (GPS pruning)")
     image = match_images(names, model.image_names)  # exact names, else file names
     hit = image >= 0
@@ -107,10 +105,8 @@ def gps_predict(capture: StreetCapture, street: StreetSegments, query_xy: np.nda
             warn(f"{capture.gps_path}: {int(hit.sum())} fix(es) match images of the COLMAP model; GPS pruning off")
         return None
     cam = street.level(model.centres[image[hit]])[:, :2]
-    tr = Transformer.from_crs("EPSG:4326", capture.scene.crs, always_xy=True)
-    east, north = tr.transform(lonlat[hit, 0], lonlat[hit, 1])
-    world = np.stack([east, north], axis=1)
-    sig = np.where(np.isfinite(sigma[hit]) & (sigma[hit] > 0), sigma[hit], default_sigma_m)
+    world = fixes.scene_xy(capture.scene.crs)[hit]
+    sig = fixes.sigma_or_default(default_sigma_m)[hit]
     origin = world.mean(axis=0)  # local origin: UTM values would cost precision in the fit
     local = world - origin
     query = np.asarray(query_xy, dtype=np.float64).reshape(-1, 2)
