@@ -20,7 +20,8 @@ in OSM) are never seen from the street, and in a dense city they make any placem
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import threading
+from dataclasses import dataclass, field
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -185,13 +186,14 @@ def _window_placements(omap: OutlineMap, spectrum: np.ndarray, shape: tuple[int,
         n = np.maximum(imgs.sum(axis=(1, 2)), 1.0)
         corr = sfft.irfft2(spectrum[None] * np.conj(sfft.rfft2(imgs, axes=(1, 2), workers=workers)), s=(H, W),
                            axes=(1, 2), workers=workers)
-        corr /= n[:, None, None]
-        flat = corr.reshape(len(th), -1)
-        best = np.argpartition(flat, -3, axis=1)[:, -3:]
+        # each rotation's 3 best values lie in its 3 rows with the highest maxima
+        rows = np.argpartition(corr.max(axis=2), -3, axis=1)[:, -3:]
+        held = np.take_along_axis(corr, rows[:, :, None], axis=1).reshape(len(th), -1)
+        best = np.argpartition(held, -3, axis=1)[:, -3:]
         for r in range(len(th)):
             for f in best[r]:
-                u, v = divmod(int(f), W)
-                found.append((float(flat[r, f]), float(th[r]), u, v, lows[r]))
+                k, v = divmod(int(f), W)
+                found.append((float(held[r, f] / n[r]), float(th[r]), int(rows[r, k]), v, lows[r]))
     found.sort(key=lambda x: -x[0])
     out: list[Placement] = []
     radius = np.linalg.norm(pts - pivot, axis=1).max() if len(pts) else 0.0
@@ -210,25 +212,31 @@ def _refine(fine: OutlineMap, pts: np.ndarray, found: list[Placement], cfg: Rout
             max_points: int = 300, reach: float = 1.0) -> list[Placement]:
     """Each coarse placement re-scored on the fine map at its best pose within a cell and a rotation
     step of it; best first."""
+    if not found:
+        return []
     sub = pts[np.linspace(0, len(pts) - 1, min(max_points, len(pts))).round().astype(int)]
     d_theta = np.deg2rad(np.arange(-1.0, 1.01, 0.5) * reach * cfg.rotation_step_deg / 2)
     r = np.arange(-reach * cfg.cell_m, reach * cfg.cell_m + 1e-9, fine.cell_m)
     d_t = np.stack(np.meshgrid(r, r, indexing="ij"), axis=-1).reshape(-1, 2)
+    # the shifts are whole fine cells: one gather per pose from a zero-padded map (0 off the map)
+    k = np.rint(d_t / fine.cell_m).astype(np.int64)
+    pad = int(np.abs(k).max()) + 1
     H, W = fine.close.shape
+    padded = np.pad(fine.close, 2 * pad)
+    Wp = W + 4 * pad
+    shift = (k[:, 0] * Wp + k[:, 1])[None, :, None]
     out = []
     for p in found:
-        best = (-1.0, p.theta, p.t)
-        for dth in d_theta:
-            c, s = np.cos(p.theta + dth), np.sin(p.theta + dth)
-            base = (sub - p.pivot) @ np.array([[c, s], [-s, c]]) + p.t - fine.corner
-            ij = np.floor((base[None] + d_t[:, None]) / fine.cell_m).astype(np.int64)
-            ok = (ij[..., 0] >= 0) & (ij[..., 0] < H) & (ij[..., 1] >= 0) & (ij[..., 1] < W)
-            val = np.where(ok, fine.close[np.clip(ij[..., 0], 0, H - 1), np.clip(ij[..., 1], 0, W - 1)], 0.0)
-            score = val.mean(axis=1)
-            k = int(np.argmax(score))
-            if score[k] > best[0]:
-                best = (float(score[k]), p.theta + dth, p.t + d_t[k])
-        out.append(Placement(theta=float(best[1]), t=best[2], pivot=p.pivot, score=best[0]))
+        a = p.theta + d_theta
+        c, s = np.cos(a)[:, None, None], np.sin(a)[:, None, None]
+        q = sub - p.pivot
+        base = np.stack([q[:, 0] * c[..., 0] - q[:, 1] * s[..., 0], q[:, 0] * s[..., 0] + q[:, 1] * c[..., 0]], axis=-1)
+        ij = np.floor((base + (p.t - fine.corner)) / fine.cell_m).astype(np.int64)
+        i = np.clip(ij[..., 0], -pad, H + pad - 1) + 2 * pad
+        j = np.clip(ij[..., 1], -pad, W + pad - 1) + 2 * pad
+        score = padded.ravel()[(i * Wp + j)[:, None, :] + shift].mean(axis=2)   # (rotations, shifts)
+        best = np.unravel_index(int(np.argmax(score)), score.shape)
+        out.append(Placement(theta=float(a[best[0]]), t=p.t + d_t[best[1]], pivot=p.pivot, score=float(score[best])))
     out.sort(key=lambda q: -q.score)
     return out
 
@@ -326,23 +334,30 @@ class _WindowAnchor:
 @dataclass(frozen=True)
 class RouteMaps:
     """The over-view's outer outlines as the placement search reads them: the coarse closeness map,
-    its spectrum at the padded FFT ``shape``, and the fine map the placements are re-scored on.
-    They depend on the over-view and the config only (``route_maps``), so a search over street
-    scales builds them once."""
+    its spectra (``spectrum``) and the fine map the placements are re-scored on. They depend on the
+    over-view and the config only (``route_maps``), so a search over street scales builds them once."""
 
     coarse: OutlineMap
-    spectrum: np.ndarray
-    shape: tuple[int, int]
     fine: OutlineMap
+    _spectra: dict = field(default_factory=dict, repr=False, compare=False)
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
+
+    def spectrum(self, window_m: float) -> tuple[np.ndarray, tuple[int, int]]:
+        """The coarse map's spectrum at an FFT shape padded for windows of ``window_m`` (the
+        correlation does not wrap around), and that shape; one per shape, kept."""
+        pad = int(np.ceil(1.5 * window_m / self.coarse.cell_m)) + 2
+        H, W = self.coarse.close.shape
+        shape = (sfft.next_fast_len(H + pad, real=True), sfft.next_fast_len(W + pad, real=True))
+        with self._lock:  # the scale scan places several factors at once
+            if shape not in self._spectra:
+                self._spectra[shape] = sfft.rfft2(self.coarse.close, s=shape).astype(np.complex64)
+            return self._spectra[shape], shape
 
 
 def route_maps(overview: OverviewSegments, cfg: RoutePriorConfig) -> RouteMaps:
     omap = outer_outline_map(overview, cfg.cell_m, cfg.tolerance_m, margin_m=2 * cfg.tolerance_m)
     fine = outer_outline_map(overview, cfg.fine_cell_m, cfg.fine_tolerance_m, margin_m=2 * cfg.tolerance_m)
-    pad = int(np.ceil(1.5 * cfg.window_m / cfg.cell_m)) + 2
-    shape = (sfft.next_fast_len(omap.close.shape[0] + pad, real=True),
-             sfft.next_fast_len(omap.close.shape[1] + pad, real=True))
-    return RouteMaps(omap, sfft.rfft2(omap.close, s=shape).astype(np.complex64), shape, fine)
+    return RouteMaps(omap, fine)
 
 
 def place_route(street: StreetSegments, overview: OverviewSegments, cameras_xy: np.ndarray,
@@ -366,7 +381,7 @@ def place_route(street: StreetSegments, overview: OverviewSegments, cameras_xy: 
         sel = (s_pt >= w0) & (s_pt < w0 + cfg.window_m)
         if sel.sum() < 30:  # a park or an open square: the neighbours carry it
             continue
-        found = _window_placements(omap, maps.spectrum, maps.shape, pts[sel], thetas, cfg.candidates_per_window)
+        found = _window_placements(omap, *maps.spectrum(cfg.window_m), pts[sel], thetas, cfg.candidates_per_window)
         found = _refine(fine, pts[sel], found, cfg)[:cfg.placements_per_window]
         if found and track is not None:
             cams = (arc >= w0) & (arc < w0 + cfg.window_m)

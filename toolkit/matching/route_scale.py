@@ -165,8 +165,7 @@ def scan_scale(street: StreetSegments, overview: OverviewSegments, cams_xy: np.n
     False scans only the fine grid over [lo, hi] (a range already narrow). ``workers``: threads,
     one factor each (the result does not depend on them)."""
     street, cams_xy = scan_stretch(street, cams_xy, search.stretch_windows * cfg.window_m)
-    # the maps' FFT padding must hold the largest window scanned
-    maps = route_maps(overview, cfg.model_copy(update={"window_m": cfg.window_m * max(hi, 1.0)}))
+    maps = route_maps(overview, cfg)
     n_eval = 0
     z_best = runner = z_runner = None
     coarse_gv = np.zeros((0, 2))
