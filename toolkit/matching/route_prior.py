@@ -163,12 +163,14 @@ def route_arclength(cameras_xy: np.ndarray) -> np.ndarray:
     return np.concatenate([[0.0], np.cumsum(step)])
 
 
-def _window_placements(omap: OutlineMap, spectrum: np.ndarray, shape: tuple[int, int], pts: np.ndarray,
-                       thetas: np.ndarray, keep: int, batch: int = 24, workers: int = 1) -> list[Placement]:
+def _window_placements(maps: RouteMaps, pts: np.ndarray, thetas: np.ndarray, keep: int, batch: int = 24,
+                       workers: int = 1) -> list[Placement]:
     """Best distinct placements of one window's points over every rotation (FFT correlation)."""
+    omap = maps.coarse
     cell = omap.cell_m
     pivot = pts.mean(axis=0)
-    H, W = shape
+    radius = np.linalg.norm(pts - pivot, axis=1).max() if len(pts) else 0.0
+    spectrum, (H, W) = maps.spectrum(2 * radius + 2 * cell)   # any rotation of the points fits
     found: list[tuple[float, float, int, int, np.ndarray]] = []
     for b0 in range(0, len(thetas), batch):
         th = thetas[b0:b0 + batch]
@@ -196,7 +198,6 @@ def _window_placements(omap: OutlineMap, spectrum: np.ndarray, shape: tuple[int,
                 found.append((float(held[r, f] / n[r]), float(th[r]), int(rows[r, k]), v, lows[r]))
     found.sort(key=lambda x: -x[0])
     out: list[Placement] = []
-    radius = np.linalg.norm(pts - pivot, axis=1).max() if len(pts) else 0.0
     for score, a, u, v, low in found:
         t = omap.corner + (np.array([u, v]) - low) * cell + cell / 2
         dup = any(np.linalg.norm(t - o.t) < 2 * omap.cell_m + radius * abs(_wrap(a - o.theta))
@@ -342,10 +343,10 @@ class RouteMaps:
     _spectra: dict = field(default_factory=dict, repr=False, compare=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
 
-    def spectrum(self, window_m: float) -> tuple[np.ndarray, tuple[int, int]]:
-        """The coarse map's spectrum at an FFT shape padded for windows of ``window_m`` (the
+    def spectrum(self, extent_m: float) -> tuple[np.ndarray, tuple[int, int]]:
+        """The coarse map's spectrum at an FFT shape padded for point sets ``extent_m`` across (the
         correlation does not wrap around), and that shape; one per shape, kept."""
-        pad = int(np.ceil(1.5 * window_m / self.coarse.cell_m)) + 2
+        pad = int(np.ceil(extent_m / self.coarse.cell_m)) + 2
         H, W = self.coarse.close.shape
         shape = (sfft.next_fast_len(H + pad, real=True), sfft.next_fast_len(W + pad, real=True))
         with self._lock:  # the scale scan places several factors at once
@@ -374,14 +375,14 @@ def place_route(street: StreetSegments, overview: OverviewSegments, cameras_xy: 
     s_pt = arc[nearest]
     starts = np.arange(0.0, max(arc[-1] - cfg.window_m / 2, 0.0) + 1e-9, cfg.window_m / 2)
     maps = maps or route_maps(overview, cfg)
-    omap, fine = maps.coarse, maps.fine
+    fine = maps.fine
     thetas = np.deg2rad(np.arange(0.0, 360.0, cfg.rotation_step_deg))
     windows, centres, window_pts, anchors, by_gps = [], [], [], [], []
     for w0 in starts:
         sel = (s_pt >= w0) & (s_pt < w0 + cfg.window_m)
         if sel.sum() < 30:  # a park or an open square: the neighbours carry it
             continue
-        found = _window_placements(omap, *maps.spectrum(cfg.window_m), pts[sel], thetas, cfg.candidates_per_window)
+        found = _window_placements(maps, pts[sel], thetas, cfg.candidates_per_window)
         found = _refine(fine, pts[sel], found, cfg)[:cfg.placements_per_window]
         if found and track is not None:
             cams = (arc >= w0) & (arc < w0 + cfg.window_m)
