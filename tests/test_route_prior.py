@@ -142,3 +142,33 @@ def test_the_placement_runs_with_gps_only_where_it_could_be_the_tighter_prior():
     assert _may_tighten(fixes(3.0, 8.0), cfg, GpsConfig())         # one segment's fit 8 m off: 29 m
     assert _may_tighten(fixes(5.0, 0.0), cfg, GpsConfig())         # σ 5 m: 30 m
     assert not _may_tighten(fixes(5.0, 0.0), cfg, GpsConfig(radius_m=20.0))  # one radius for both
+
+
+def _direct_score(fine, pts, theta, t, pivot) -> float:
+    """Mean closeness of the points placed at (theta, t), 0 off the map: what _refine scores."""
+    c, s = np.cos(theta), np.sin(theta)
+    ij = np.floor(((pts - pivot) @ np.array([[c, s], [-s, c]]) + t - fine.corner) / fine.cell_m).astype(int)
+    H, W = fine.close.shape
+    on = (ij[:, 0] >= 0) & (ij[:, 0] < H) & (ij[:, 1] >= 0) & (ij[:, 1] < W)
+    return float(np.where(on, fine.close[np.clip(ij[:, 0], 0, H - 1), np.clip(ij[:, 1], 0, W - 1)], 0.0).mean())
+
+
+@pytest.mark.parametrize("corner_m", [(0.0, 0.0), (-20.0, -15.0)])   # on the map; hanging off its corner
+def test_the_fine_rescoring_finds_the_best_pose_around_a_coarse_one(corner_m):
+    from toolkit.matching.route_prior import OutlineMap, Placement, _refine
+
+    rng = np.random.default_rng(7)
+    close = rng.random((60, 50)).astype(np.float32)
+    fine = OutlineMap(corner=np.array(corner_m), cell_m=1.0, close=close)
+    pts = rng.uniform(5.0, 40.0, (200, 2))
+    pivot = pts.mean(axis=0)
+    cfg = RoutePriorConfig()
+    coarse = Placement(theta=0.02, t=pivot + 0.3, pivot=pivot, score=0.0)
+    (got,) = _refine(fine, pts, [coarse], cfg)
+    # every pose the search covers: 5 rotations within half a rotation step, whole-cell shifts within a coarse cell
+    poses = [(coarse.theta + d, coarse.t + np.array([u, v]))
+             for d in np.deg2rad(np.arange(-1.0, 1.01, 0.5) * cfg.rotation_step_deg / 2)
+             for u in np.arange(-cfg.cell_m, cfg.cell_m + 1e-9) for v in np.arange(-cfg.cell_m, cfg.cell_m + 1e-9)]
+    best = max(_direct_score(fine, pts, a, t, pivot) for a, t in poses)
+    assert got.score == pytest.approx(_direct_score(fine, pts, got.theta, got.t, pivot), abs=1e-6)
+    assert got.score == pytest.approx(best, abs=1e-6)

@@ -229,9 +229,9 @@ def _refine(fine: OutlineMap, pts: np.ndarray, found: list[Placement], cfg: Rout
     out = []
     for p in found:
         a = p.theta + d_theta
-        c, s = np.cos(a)[:, None, None], np.sin(a)[:, None, None]
+        c, s = np.cos(a)[:, None], np.sin(a)[:, None]
         q = sub - p.pivot
-        base = np.stack([q[:, 0] * c[..., 0] - q[:, 1] * s[..., 0], q[:, 0] * s[..., 0] + q[:, 1] * c[..., 0]], axis=-1)
+        base = np.stack([q[:, 0] * c - q[:, 1] * s, q[:, 0] * s + q[:, 1] * c], axis=-1)   # (rotations, points, 2)
         ij = np.floor((base + (p.t - fine.corner)) / fine.cell_m).astype(np.int64)
         i = np.clip(ij[..., 0], -pad, H + pad - 1) + 2 * pad
         j = np.clip(ij[..., 1], -pad, W + pad - 1) + 2 * pad
