@@ -275,8 +275,10 @@ def _chain(windows: list[list[Placement]], links: list[np.ndarray], cfg: RoutePr
            gaps_m: np.ndarray, anchors: list[_WindowAnchor] | None = None,
            gps_tolerance_m: float = 1.0) -> tuple[list[int], np.ndarray]:
     """Viterbi over windows: maximise Σ (score − GPS cost) − link_cost·Σ min(disagreement / agree, 1)."""
-    def link(a: Placement, b: Placement, cams: np.ndarray) -> float:
-        return float(np.sqrt(np.mean(np.sum((a.apply(cams) - b.apply(cams)) ** 2, axis=1))))
+    def link(a: list[Placement], b: list[Placement], cams: np.ndarray) -> np.ndarray:
+        """(len(a), len(b)) RMS distance between where each pair puts the cameras."""
+        pa, pb = np.array([p.apply(cams) for p in a]), np.array([p.apply(cams) for p in b])
+        return np.sqrt(np.mean(np.sum((pa[:, None] - pb[None]) ** 2, axis=3), axis=2))
 
     def unary(w: int) -> np.ndarray:
         score = np.array([p.score for p in windows[w]])
@@ -290,7 +292,7 @@ def _chain(windows: list[list[Placement]], links: list[np.ndarray], cfg: RoutePr
     dist_tables = []
     for w in range(1, len(windows)):
         agree = agree_m(cfg, gaps_m[w - 1])
-        d = np.array([[link(a, b, links[w - 1]) for b in windows[w]] for a in windows[w - 1]])
+        d = link(windows[w - 1], windows[w], links[w - 1])
         total = value[:, None] - cfg.link_cost * np.minimum(d / agree, 1.0)
         back.append(np.argmax(total, axis=0))
         value = total.max(axis=0) + unary(w)
