@@ -107,3 +107,30 @@ def run_pipeline(recipe: str, scene_dir: Path, out: Path, overrides=()):
     res = run_recipe(REPO / "recipes" / recipe, scene=scene_dir, out=out, overwrite=True, rerun=False,
                      overrides=list(overrides))
     return time.perf_counter() - t0, res
+
+
+# --- bounded bench outputs (a variant's 36 runs hold ~4 GB with their PLY copies; the disk filled twice)
+def slim_run(out: Path) -> str | None:
+    """The sha256 of the run's registered.laz (to compare variants byte for byte once the folder is
+    gone), after deleting registered.ply: the same points as the LAZ, three quarters of the folder."""
+    import hashlib
+
+    (out / "registered.ply").unlink(missing_ok=True)
+    laz = out / "registered.laz"
+    if not laz.is_file():
+        return None
+    h = hashlib.sha256()
+    with laz.open("rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def bound_folders(folders: list[Path], keep: int, spare: Path | None = None) -> None:
+    """Delete all but the ``keep`` most recently modified of ``folders`` (never ``spare``), saying so."""
+    import shutil
+
+    old = sorted((d for d in folders if d.is_dir() and d != spare), key=lambda d: d.stat().st_mtime, reverse=True)
+    for d in old[keep:]:
+        print(f"removing {d} (bench outputs are kept for the {keep} newest variants)", flush=True)
+        shutil.rmtree(d)

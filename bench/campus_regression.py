@@ -5,7 +5,9 @@ data/campus<seed>, outputs under data/campus-out/<tag>/), the default first and 
 given by ``--set`` overrides, each run in its own process, and prints per run the horizontal
 median, horizontal p95, 3D p95 and 3D mean (m) and the adjusted camera centres' median error, with
 each figure's change. The campus is a regression check, not a tuning set: the issue's bar is that
-no figure gets more than 10 % worse.
+no figure gets more than 10 % worse. Each run's registered.ply is deleted once it has run (its
+registered.laz and registered.sha256 stay), and a new tag removes all but the newest
+KEEP_VARIANTS − 1 variant folders besides default.
 
 usage: python bench/campus_regression.py [--seeds 0,1,2,3,4] [--recipes dsm,osm,label_map]
        [--set KEY=VALUE ...] [--tag NAME] [--reuse-default]
@@ -20,9 +22,10 @@ import sys
 import time
 from pathlib import Path
 
-from _common import REPO
+from _common import REPO, bound_folders, slim_run
 
 OUT = REPO / "data" / "campus-out"
+KEEP_VARIANTS = 3  # data/campus-out/<tag> folders kept besides default (each run keeps registered.laz, not the PLY)
 FIGURES = (("h med", ("truth", "horizontal", "median_m")), ("h p95", ("truth", "horizontal", "p95_m")),
            ("3D p95", ("truth", "error_3d", "p95_m")), ("3D mean", ("truth", "error_3d", "mean_m")),
            ("cam med", ("cameras", "centre_error_median_m")))
@@ -48,7 +51,9 @@ def run(seed: int, recipe: str, tag: str, overrides: list[str], reuse: bool = Fa
     done = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
     if done.returncode not in (0, 4):
         sys.exit(f"seed {seed} {recipe} ({tag}): exit {done.returncode}\n{done.stderr[-2000:]}")
-    return json.loads((out / "metrics.json").read_text()), time.perf_counter() - t0
+    seconds = time.perf_counter() - t0
+    (out / "registered.sha256").write_text(f"{slim_run(out)}\n")  # the PLY goes; its digest stays
+    return json.loads((out / "metrics.json").read_text()), seconds
 
 
 def figure(metrics: dict, path: tuple[str, ...]) -> float:
@@ -66,6 +71,8 @@ def main() -> None:
     ap.add_argument("--reuse-default", action="store_true",
                     help="take the default runs from data/campus-out/default/ when they are there (same code)")
     args = ap.parse_args()
+    if not (OUT / args.tag).exists():  # room for this variant: the default and the newest variants stay
+        bound_folders([d for d in OUT.glob("*") if d.name != "default"], KEEP_VARIANTS - 1)
     worst = (0.0, "")
     head = "  ".join(f"{name:>16s}" for name, _ in FIGURES)
     print(f"{'seed recipe':16s} {head}   seconds (default → variant)")

@@ -27,7 +27,9 @@ none), exit code, seconds. The bar: horizontal median ≤ 0.5 m, p95 ≤ 1.5 m a
 rigid fit's. Rows go to data/cities/results.json (after each run) under the code state
 (``git rev-parse --short HEAD``, "-dirty" when tracked files differ from it, "+NAME" for a variant
 run with ``--set`` overrides and ``--tag NAME``, whose outputs go to data/cities/out-NAME/; each row also keeps
-a hash of the diff).
+a hash of the diff). Disk: each run's registered.ply is deleted once scored (registered.laz holds the same
+points; the row keeps its sha256 as ``registered_sha256``, so variants compare byte for byte after their
+folders are gone), and a new variant removes all but the KEEP_VARIANTS − 1 newest out-* folders.
 
 ``--gps-sigma-m S --gps-every N`` (with --gps, needs --tag): the runs use fixes made for the bench
 from truth/cameras.txt, every N-th image with a slowly wandering error of S m per axis (the
@@ -55,11 +57,12 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from _common import REPO, kabsch_error
+from _common import REPO, bound_folders, kabsch_error, slim_run
 
 RAW = Path(__file__).resolve().parents[2] / "shared" / "data" / "raw"
 ROOT = REPO / "data" / "cities"
 OUT = ROOT / "out"
+KEEP_VARIANTS = 4  # data/cities/out-TAG folders kept (the newest); each run keeps registered.laz, not the PLY
 RESULTS = ROOT / "results.json"
 RECIPES = ("dsm", "osm", "label_map")
 
@@ -310,7 +313,7 @@ def run_one(s: Scene, recipe: str, gps: bool, overrides: tuple[str, ...] = (), t
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO)
     seconds = time.perf_counter() - t0
     Path(f"{out}.log").write_text(" ".join(cmd) + "\n" + proc.stdout + proc.stderr)
-    return {"out": out, "exit": proc.returncode, "seconds": round(seconds, 1),
+    return {"out": out, "exit": proc.returncode, "seconds": round(seconds, 1), "registered_sha256": slim_run(out),
             "stderr_tail": (proc.stderr.strip().splitlines() or [""])[-1][:300]}
 
 
@@ -364,6 +367,7 @@ def row_of(s: Scene, stamp: dict, recipe: str, gps: bool, run: dict) -> dict:
         "seconds": run["seconds"],
         "error": None if run["exit"] in (0, 4) else run["stderr_tail"],
         "warnings": warnings,
+        "registered_sha256": run.get("registered_sha256"),
     }
     row["meets_bar"] = meets_bar(row)
     return row
@@ -508,6 +512,8 @@ def main() -> int:
                   + (f" ({row['error']})" if row["error"] else ""), flush=True)
         return row
 
+    if args.tag and not (ROOT / f"out-{args.tag}").exists():  # room for this variant's outputs
+        bound_folders(list(ROOT.glob("out-*")), KEEP_VARIANTS - 1)
     lock = threading.Lock()
     with ThreadPoolExecutor(max(1, args.jobs)) as pool:
         done = {(row["scene"], row["source"]): row for row in pool.map(work, jobs)}

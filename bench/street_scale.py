@@ -30,7 +30,7 @@ from pathlib import Path
 
 import yaml
 
-from _common import REPO
+from _common import REPO, slim_run
 
 OUT = REPO / "data" / "scale"
 
@@ -90,6 +90,7 @@ def run(root: Path, recipe: str, gps: bool) -> dict:
     out.parent.mkdir(parents=True, exist_ok=True)
     Path(f"{out}.log").write_text(proc.stdout + proc.stderr)  # an exit 1 or 2 says why here
     m = json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").is_file() else {}
+    slim_run(out)  # the PLY copy of registered.laz
     truth = m.get("truth") or {}
     kind = "error_3d" if recipe == "dsm" else "horizontal"
     return {"exit": proc.returncode, "status": m.get("status"), "scale": (m.get("street_scale") or {}),
