@@ -7,8 +7,8 @@ number in [0.05, 20] (1.0: the frame is metric). ``auto``:
   50-500 m apart, of the camera-centre distance over the fix distance (``scale_from_gps``), as the
   first guess the matching then checks as without GPS: fixes a few metres off bias that median by
   several per cent, the façades against the outlines do not. A matching estimate more than
-  GPS_REACH from the GPS one is not taken. A fixes' estimate within 2 % of 1 is taken as metric
-  without the check (the scan costs 3-15 s);
+  GPS_REACH from the GPS one is not taken. A fixes' estimate within KEEP_BAND (5 %) of 1 is taken
+  as metric without the check, as a matching estimate is without GPS;
 - without GPS, with street/sparse: from the matching (``first_guess``, ``scale_from_matching``). The
   street step first runs at 1 when the cameras sit 1-4 frame units above the COLMAP points under
   them, else at the scale that puts them 2 m up; then the route's façades are placed on the
@@ -202,7 +202,9 @@ def scale_from_gps(scene: Scene) -> StreetScale | None:
     if not lo <= value <= hi:
         raise SceneError(f"{scene.files.gps}: the street frame's scale estimated from GPS ({value:.4g}) is outside "
                          f"[{lo:g}, {hi:g}]: check the fixes, or set street_scale")
-    if abs(value - 1.0) <= METRIC_TOLERANCE:  # metric: the common case, not worth a scan (3-15 s)
+    # within the per-segment scale's reach the frame is taken as metric, as without GPS (KEEP_BAND):
+    # refine measures the route's scale better than fixes a few metres off do
+    if abs(value - 1.0) <= KEEP_BAND:
         return StreetScale(1.0, "gps", len(r), estimate=value)
     return StreetScale(value, "gps", len(r), estimate=value, matching={"passes": 0}, settled=False)
 
