@@ -373,49 +373,19 @@ def place_route(street: StreetSegments, overview: OverviewSegments, cameras_xy: 
     pts, seg = _facade_cells(street, cfg.cell_m / 2)
     from scipy.spatial import cKDTree
 
-    _, nearest = cKDTree(cameras_xy).query(pts)
-    s_pt = arc[nearest]
-    starts = np.arange(0.0, max(arc[-1] - cfg.window_m / 2, 0.0) + 1e-9, cfg.window_m / 2)
+    s_pt = arc[cKDTree(cameras_xy).query(pts)[1]]
     maps = maps or route_maps(overview, cfg)
-    fine = maps.fine
-    thetas = np.deg2rad(np.arange(0.0, 360.0, cfg.rotation_step_deg))
-    windows, centres, window_pts, anchors, by_gps = [], [], [], [], []
-    for w0 in starts:
-        sel = (s_pt >= w0) & (s_pt < w0 + cfg.window_m)
-        if sel.sum() < 30:  # a park or an open square: the neighbours carry it
-            continue
-        found = _window_placements(maps, pts[sel], thetas, cfg.candidates_per_window)
-        found = _refine(fine, pts[sel], found, cfg)[:cfg.placements_per_window]
-        if found and track is not None:
-            cams = (arc >= w0) & (arc < w0 + cfg.window_m)
-            anchors.append(_WindowAnchor(cameras_xy[cams], track.position[cams]))
-            by_gps.append(_refine(fine, pts[sel], [anchors[-1].placement(found[0].pivot)], cfg, reach=2.0))
-        if found:
-            windows.append(found)
-            window_pts.append(pts[sel])
-            centres.append(w0 + cfg.window_m / 2)
-    centres = np.asarray(centres)
-    windows = _seed_from_neighbours(fine, windows, window_pts, cfg)
-    if by_gps:  # after the seeding, which keeps only the best-scoring placements
-        windows = [sorted(found + extra, key=lambda q: -q.score) for found, extra in zip(windows, by_gps)]
-    if not windows:
-        return RoutePlacement(None, (), centres, np.zeros(0), np.zeros(0), 0.0, "no window with façades")
+    found = _search_windows(pts, s_pt, arc, cameras_xy, maps, cfg, track)
+    if not found.windows:
+        return RoutePlacement(None, (), found.centres, np.zeros(0), np.zeros(0), 0.0, "no window with façades")
+    windows, centres = found.windows, found.centres
     links = [_cameras_between(cameras_xy, arc, a, b) for a, b in zip(centres[:-1], centres[1:])]
-    chain_gps = {"anchors": anchors, "gps_tolerance_m": track.tolerance_m} if track is not None else {}
+    chain_gps = {"anchors": found.anchors, "gps_tolerance_m": track.tolerance_m} if track is not None else {}
     pick, link_m = _chain(windows, links, cfg, np.diff(centres), **chain_gps)
     agree = agree_m(cfg, np.diff(centres))
     for _ in range(2):  # a window off the chain tries its chosen neighbours' placements, then the chain again
-        off = np.zeros(len(windows), bool)
-        off[:-1] |= link_m > agree
-        off[1:] |= link_m > agree
-        if not off.any():
+        if not _retry_off_chain(windows, found.points, pick, link_m > agree, maps.fine, cfg):
             break
-        for w in np.nonzero(off)[0]:
-            pivot = windows[w][0].pivot
-            tried = [Placement(theta=windows[n][pick[n]].theta, t=windows[n][pick[n]].apply(pivot[None])[0],
-                               pivot=pivot, score=0.0) for n in (w - 1, w + 1) if 0 <= n < len(windows)]
-            windows[w] = sorted(windows[w] + _refine(fine, window_pts[w], tried, cfg, reach=2.0),
-                                key=lambda q: -q.score)
         pick, link_m = _chain(windows, links, cfg, np.diff(centres), **chain_gps)
     chosen = tuple(windows[w][h] for w, h in enumerate(pick))
     scores = np.array([p.score for p in chosen])
@@ -425,6 +395,60 @@ def place_route(street: StreetSegments, overview: OverviewSegments, cameras_xy: 
                               f"median window score {np.median(scores):.2f} < {cfg.min_score}", agree)
     prior = _segment_prior(street, seg, s_pt, chosen, centres, cfg)
     return RoutePlacement(prior, chosen, centres, scores, link_m, top_share, link_agree_m=agree)
+
+
+@dataclass(frozen=True)
+class _WindowSearch:
+    """The windows with façades, in route order: each one's candidate placements (best first), its
+    route centre, its façade points and, with GPS, its cameras' anchor (else ``anchors`` is empty)."""
+
+    windows: list[list[Placement]]
+    centres: np.ndarray
+    points: list[np.ndarray]
+    anchors: list[_WindowAnchor]
+
+
+def _search_windows(pts: np.ndarray, s_pt: np.ndarray, arc: np.ndarray, cameras_xy: np.ndarray, maps: RouteMaps,
+                    cfg: RoutePriorConfig, track: GpsTrack | None) -> _WindowSearch:
+    """Every half-overlapping window of route: its best placements on the outlines, then those of its
+    neighbours (``_seed_from_neighbours``), then, with GPS, the one that puts its cameras on the track."""
+    starts = np.arange(0.0, max(arc[-1] - cfg.window_m / 2, 0.0) + 1e-9, cfg.window_m / 2)
+    thetas = np.deg2rad(np.arange(0.0, 360.0, cfg.rotation_step_deg))
+    windows, centres, window_pts, anchors, by_gps = [], [], [], [], []
+    for w0 in starts:
+        sel = (s_pt >= w0) & (s_pt < w0 + cfg.window_m)
+        if sel.sum() < 30:  # a park or an open square: the neighbours carry it
+            continue
+        found = _window_placements(maps, pts[sel], thetas, cfg.candidates_per_window)
+        found = _refine(maps.fine, pts[sel], found, cfg)[:cfg.placements_per_window]
+        if not found:
+            continue
+        if track is not None:
+            cams = (arc >= w0) & (arc < w0 + cfg.window_m)
+            anchors.append(_WindowAnchor(cameras_xy[cams], track.position[cams]))
+            by_gps.append(_refine(maps.fine, pts[sel], [anchors[-1].placement(found[0].pivot)], cfg, reach=2.0))
+        windows.append(found)
+        window_pts.append(pts[sel])
+        centres.append(w0 + cfg.window_m / 2)
+    windows = _seed_from_neighbours(maps.fine, windows, window_pts, cfg)
+    if by_gps:  # after the seeding, which keeps only the best-scoring placements
+        windows = [sorted(found + extra, key=lambda q: -q.score) for found, extra in zip(windows, by_gps)]
+    return _WindowSearch(windows, np.asarray(centres), window_pts, anchors)
+
+
+def _retry_off_chain(windows: list[list[Placement]], window_pts: list[np.ndarray], pick: list[int],
+                     broken: np.ndarray, fine: OutlineMap, cfg: RoutePriorConfig) -> bool:
+    """Each window at a broken link also tries its neighbours' chosen placements (in place). False
+    when no link is broken."""
+    off = np.zeros(len(windows), bool)
+    off[:-1] |= broken
+    off[1:] |= broken
+    for w in np.nonzero(off)[0]:
+        pivot = windows[w][0].pivot
+        tried = [Placement(theta=windows[n][pick[n]].theta, t=windows[n][pick[n]].apply(pivot[None])[0],
+                           pivot=pivot, score=0.0) for n in (w - 1, w + 1) if 0 <= n < len(windows)]
+        windows[w] = sorted(windows[w] + _refine(fine, window_pts[w], tried, cfg, reach=2.0), key=lambda q: -q.score)
+    return bool(off.any())
 
 
 def _facade_cells(street: StreetSegments, cell_m: float) -> tuple[np.ndarray, np.ndarray]:
