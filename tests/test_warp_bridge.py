@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from toolkit.warp.bridge import CameraPoses, bridge_gaps, grounded_cameras, sequence_breaks
+from toolkit.warp.bridge import CameraPoses, bridge_gaps, ground_gap_m, grounded_cameras, sequence_breaks
 
 
 def drifted_route(n: int = 301, step_m: float = 1.0, rate_deg_per_m: float = 0.02, seed: int = 0):
@@ -138,3 +138,14 @@ def test_gaps_shorter_than_min_gap_keep_the_blend():
     assert not bridged.any() and np.array_equal(kept.centres, poses.centres)
     _, bridged = bridge_gaps(street, poses, grounded, min_gap_m=150.0)
     assert bridged[60:240].all()
+
+
+def test_the_gap_to_a_grounded_camera_is_measured_along_the_route_within_its_sequence():
+    street = np.column_stack([np.arange(10.0) * 2.0, np.zeros(10), np.zeros(10)])   # 2 m steps
+    street[7:] += [1_000.0, 0.0, 0.0]                   # a second video starts at image 7
+    grounded = np.zeros(10, bool)
+    grounded[[1, 5]] = True                             # none in the second video
+    gap = ground_gap_m(street, grounded)
+    assert gap[:7].tolist() == [2.0, 0.0, 2.0, 4.0, 2.0, 0.0, 2.0]
+    assert np.isinf(gap[7:]).all()                      # the 1 km jump is no route to a grounded camera
+    assert np.isinf(ground_gap_m(street, np.zeros(10, bool))).all()

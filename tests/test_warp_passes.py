@@ -208,7 +208,7 @@ def test_bridged_cameras_follow_the_capture_order_not_the_models(tmp_path, monke
 
 
 def test_the_registration_says_which_cameras_were_bridged(tmp_path):
-    from toolkit.status import bridged_camera_share
+    from toolkit.status import bridged_camera_share, camera_gap_p90_m
 
     street, scene, tr, _ = _loop_scene(tmp_path)
     cfg = {"neighbours_k": 1, "camera_neighbours_k": 1}
@@ -219,3 +219,9 @@ def test_the_registration_says_which_cameras_were_bridged(tmp_path):
     assert off.camera_bridged is None and bridged_camera_share(off) is None
     assert on.camera_bridged.dtype == bool and on.camera_bridged.sum() == 2     # two cameras see < 5 façade points
     assert bridged_camera_share(on) == 2 / 41
+    # the two are one 1 m step from a camera that sees registered façades; the excursion 700 m
+    # away is a sequence of its own, with none
+    assert off.camera_gap_m is None and camera_gap_p90_m(off) is None
+    gap = on.camera_gap_m
+    assert (gap[on.camera_bridged] == 1.0).all() and np.isinf(gap[20])
+    assert (gap[~on.camera_bridged & (np.arange(41) != 20)] == 0.0).all() and camera_gap_p90_m(on) == 0.0

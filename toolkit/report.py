@@ -71,6 +71,7 @@ ASSESSMENT_CARDS: tuple[tuple[str, str, str], ...] = (
     ("points outside the over-view data", "outside_grid_share", "{:.1%}"),
     ("camera spread, median / p95", "camera_spread_median_m|camera_spread_p95_m", "{:.2f} / {:.2f} m"),
     ("cameras bridged across route gaps", "bridged_camera_share", "{:.0%}"),
+    ("route to a camera seeing a registered façade, p90", "camera_gap_p90_m", "{:.0f} m"),
     ("BA reprojection RMS, before / after", "ba_rms_before_px|ba_rms_after_px", "{:.2f} / {:.2f} px"),
     ("GPS residual of the cameras, median", "gps_residual_median_m", "{:.2f} m"),
 )

@@ -316,6 +316,7 @@ def measure(outputs: RunOutputs, params: AssessParams | None = None) -> dict[str
     figures["outside_grid_share"] = outside_grid_share(registration, overview, params.max_points)
     figures.update(camera_spread(registration))
     figures["bridged_camera_share"] = bridged_camera_share(registration)
+    figures["camera_gap_p90_m"] = camera_gap_p90_m(registration)
     figures["camera_height_median_m"] = camera_height_m(registration, street, params.max_points)
     if figures["camera_height_median_m"] is None and registration is None and street is not None and len(street) \
             and outputs.capture is not None and outputs.capture.sparse_path is not None:
@@ -457,6 +458,17 @@ def bridged_camera_share(registration: Registration | None) -> float | None:
     (Registration.camera_bridged); None when no bridge ran."""
     bridged = None if registration is None else registration.camera_bridged
     return None if bridged is None or len(bridged) == 0 else float(np.mean(bridged))
+
+
+def camera_gap_p90_m(registration: Registration | None) -> float | None:
+    """90th percentile over the cameras of the route distance to the nearest camera that sees a
+    registered façade (Registration.camera_gap_m): beyond it the registration rests on the
+    trajectory's own drift. None when no bridge ran or more than 10 % of the cameras have none."""
+    gap = None if registration is None else registration.camera_gap_m
+    if gap is None or len(gap) == 0:
+        return None
+    p90 = float(np.percentile(gap, 90))
+    return p90 if np.isfinite(p90) else None
 
 
 def camera_spread(registration: Registration | None) -> dict[str, Any]:

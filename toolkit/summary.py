@@ -16,6 +16,7 @@ STATUS_ROWS: tuple[tuple[str, str, str], ...] = (
      "{:.2f} m / {:.0%}"),
     ("matching converged (iterations)", "bp_converged|bp_iterations", "{} ({})"),
     ("cameras bridged across route gaps", "bridged_camera_share", "{:.0%}"),
+    ("route to a camera seeing a registered façade, p90", "camera_gap_p90_m", "{:.0f} m"),
     ("BA reprojection RMS, before / after", "ba_rms_before_px|ba_rms_after_px", "{:.2f} / {:.2f} px"),
     ("GPS residual of the cameras, median", "gps_residual_median_m", "{:.2f} m"),
 )

@@ -372,6 +372,8 @@ class Registration:
     (``toolkit.stream``); None: row i is input point i.
     camera_bridged: (C,) bool, the camera's pose follows the street trajectory across a route gap
     (``toolkit.warp.bridge``), or None (no bridge ran).
+    camera_gap_m: (C,) route distance from the camera to the nearest one that sees a registered
+    façade (``toolkit.warp.bridge.ground_gap_m``; inf: none in its sequence), or None (no bridge ran).
     """
 
     points: Array
@@ -383,6 +385,7 @@ class Registration:
     warp: Any = None
     rows: Array | None = None
     camera_bridged: Array | None = None
+    camera_gap_m: Array | None = None
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,7 @@ from toolkit.refine.route import camera_route_positions, sparse_segments
 from toolkit.threads import map_in_order, single_threaded_blas
 from toolkit.types import Registration, SegmentTransforms, SparseModel, StreetSegments
 from toolkit.warp.blend import SegmentIndex, blend_rigid
-from toolkit.warp.bridge import CameraPoses, bridge_gaps, grounded_cameras
+from toolkit.warp.bridge import CameraPoses, bridge_gaps, ground_gap_m, grounded_cameras
 from toolkit.warp.cells import levelled_xy
 from toolkit.warp.model import PointWarp
 from toolkit.warp.passes import point_route_positions, reanchor_other_pass, sparse_route_positions
@@ -150,7 +150,7 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, capture: 
     moved = warp.maps(pts, anchors, xy).apply(pts)
     names: tuple[str, ...] = ()
     R, t, spread = np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0)
-    bridged = None
+    bridged = gap = None
     if model is not None and len(model.image_names):
         names = model.image_names
         C = model.centres
@@ -179,8 +179,10 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, capture: 
                                         grounded[seq], bridge_min_gap_m)
             pos, Rb, spread, bridged = pos.copy(), Rb.copy(), spread.copy(), np.zeros(len(C), bool)
             pos[seq], Rb[seq], spread[seq], bridged[seq] = poses.centres, poses.rotations, poses.spread, in_gap
+            gap = np.empty(len(C))
+            gap[seq] = ground_gap_m(C[seq], grounded[seq])
         R = np.einsum("cab,cdb->cad", model.R, Rb)          # R_wc · R̄ᵀ
         t = -np.einsum("cab,cb->ca", R, pos)
     return Registration(points=moved, image_names=names, R=R, t=t, point_segment=anchors.astype(np.int64, copy=False),
-                        camera_spread_m=spread, rows=capture.rows, camera_bridged=bridged,
+                        camera_spread_m=spread, rows=capture.rows, camera_bridged=bridged, camera_gap_m=gap,
                         warp=warp.with_source(pts, anchors).for_input_frame(capture.scale.value))

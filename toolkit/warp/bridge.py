@@ -40,6 +40,31 @@ def sequence_breaks(street_centres: np.ndarray, max_step_ratio: float = 20.0) ->
     return steps > max_step_ratio * max(float(np.median(steps)), 1e-9)
 
 
+def _route(street_centres: np.ndarray, max_step_ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """(C,) sequence index and (C,) distance travelled of each camera (capture order); a sequence
+    break adds no distance."""
+    breaks = sequence_breaks(street_centres, max_step_ratio)
+    steps = np.linalg.norm(np.diff(street_centres, axis=0), axis=1)
+    return (np.concatenate([[0], np.cumsum(breaks)]),
+            np.concatenate([[0.0], np.cumsum(np.where(breaks, 0.0, steps))]))
+
+
+def ground_gap_m(street_centres: np.ndarray, grounded: np.ndarray, max_step_ratio: float = 20.0) -> np.ndarray:
+    """(C,) route distance from each camera to the nearest grounded camera of its sequence (0 for a
+    grounded one; inf in a sequence without any). Capture order, as ``bridge_gaps``."""
+    gap = np.full(len(street_centres), np.inf)
+    if len(street_centres) == 0:
+        return gap
+    seq_id, arc = _route(street_centres, max_step_ratio)
+    for q in np.unique(seq_id):
+        mine = np.flatnonzero(seq_id == q)
+        at, x = arc[mine[grounded[mine]]], arc[mine]      # both non-decreasing along the sequence
+        if len(at):
+            i = np.searchsorted(at, x)
+            gap[mine] = np.minimum(np.abs(x - at[np.maximum(i - 1, 0)]), np.abs(at[np.minimum(i, len(at) - 1)] - x))
+    return gap
+
+
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     """[start, end) of each maximal run of True."""
     edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
@@ -109,10 +134,7 @@ def bridge_gaps(street_centres: np.ndarray, poses: CameraPoses, grounded: np.nda
     bridged = np.zeros(C, bool)
     if C < 3 or not grounded.any():
         return poses, bridged
-    breaks = sequence_breaks(street_centres, max_step_ratio)
-    seq_id = np.concatenate([[0], np.cumsum(breaks)])
-    arc = np.concatenate([[0.0], np.cumsum(np.where(breaks, 0.0, np.linalg.norm(np.diff(street_centres, axis=0),
-                                                                                      axis=1)))])
+    seq_id, arc = _route(street_centres, max_step_ratio)
     for lo, hi in _runs(~grounded):
         # a run that crosses a sequence break is bridged piecewise, from the ends it has
         for part in np.split(np.arange(lo, hi), np.flatnonzero(np.diff(seq_id[lo:hi])) + 1):
