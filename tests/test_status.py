@@ -76,6 +76,7 @@ def test_good_figures_are_ok_with_full_confidence():
     ({"camera_height_median_m": 9.0}, "street scale is likely wrong"),
     ({"segment_scale_median": 0.955}, "median scale of 0.955"),
     ({"prior_links_broken": 2, "prior_links": 9, "prior_link_max_m": 1119.2}, "route placement puts 2 of its 9"),
+    ({"camera_gap_p90_m": 160.3}, "a tenth of the cameras are 160 m"),
 ])
 def test_each_hard_reason_fires_first(change, fragment):
     verdict = StatusRule().judge({**GOOD, **change})

@@ -70,6 +70,9 @@ class StatusRule:
     max_outside_grid_share: float = 0.5
     max_segment_scale_deviation: float = 0.035   # |median segment scale − 1|: drift of ±3 % moves it ≤ 1.5 %
     max_route_links_broken: int = 0     # route placement (no GPS): neighbouring windows placed apart
+    # the warp bridges route gaps from 100 m on (warp.inverse_log bridge_min_gap_m): cameras that far from a
+    # registered façade rest on the trajectory's own drift
+    max_camera_gap_p90_m: float = 100.0
     min_camera_height_m: float = 0.8    # street capture: handheld ~1.5 m, car roof ~2.5 m, mast ~4 m
     max_camera_height_m: float = 6.0
     gps_sigma_factor: float = 3.0       # GPS tolerance = max(gps_sigma_factor · σ, gps_min_tolerance_m)
@@ -218,6 +221,15 @@ def _hard_camera_height(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
             f"give street/gps.csv)")
 
 
+def _hard_camera_gap(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
+    g = f.get("camera_gap_p90_m")
+    if g is None or g <= rule.max_camera_gap_p90_m:
+        return None
+    return (f"a tenth of the cameras are {g:.0f} m or more along the route from one that sees a registered façade "
+            f"(at most {rule.max_camera_gap_p90_m:g} m expected): there the registration follows the trajectory's "
+            f"own drift")
+
+
 def _hard_registered(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
     s = f.get("registered_point_share")
     if s is None or s >= rule.min_registered_point_share:
@@ -232,7 +244,7 @@ HARD_CHECKS = {"gps_residual_ratio": _hard_gps, "facade_support_share": _hard_fa
                "outside_grid_share": _hard_outside, "neighbour_disagree_share": _hard_neighbours,
                "prior_links_broken": _hard_route_chain,
                "camera_height_median_m": _hard_camera_height, "registered_point_share": _hard_registered,
-               "segment_scale_median": _hard_segment_scale}
+               "segment_scale_median": _hard_segment_scale, "camera_gap_p90_m": _hard_camera_gap}
 
 SOFT_REASONS = {
     "registered_point_share": lambda r, f: f"{f['registered_point_share']:.0%} of the street points on registered "
