@@ -126,11 +126,11 @@ def slim_run(out: Path) -> str | None:
     return h.hexdigest()
 
 
-def bound_folders(folders: list[Path], keep: int, spare: Path | None = None) -> None:
-    """Delete all but the ``keep`` most recently modified of ``folders`` (never ``spare``), saying so."""
+def bound_folders(folders: list[Path], keep: int) -> None:
+    """Delete all but the ``keep`` most recently modified of ``folders``, saying so."""
     import shutil
 
-    old = sorted((d for d in folders if d.is_dir() and d != spare), key=lambda d: d.stat().st_mtime, reverse=True)
+    old = sorted((d for d in folders if d.is_dir()), key=lambda d: d.stat().st_mtime, reverse=True)
     for d in old[keep:]:
         print(f"removing {d} (bench outputs are kept for the {keep} newest variants)", flush=True)
         shutil.rmtree(d)

@@ -52,7 +52,9 @@ def run(seed: int, recipe: str, tag: str, overrides: list[str], reuse: bool = Fa
     if done.returncode not in (0, 4):
         sys.exit(f"seed {seed} {recipe} ({tag}): exit {done.returncode}\n{done.stderr[-2000:]}")
     seconds = time.perf_counter() - t0
-    (out / "registered.sha256").write_text(f"{slim_run(out)}\n")  # the PLY goes; its digest stays
+    digest = slim_run(out)  # the PLY goes; the LAZ's digest stays
+    if digest:
+        (out / "registered.sha256").write_text(digest + "\n")
     return json.loads((out / "metrics.json").read_text()), seconds
 
 

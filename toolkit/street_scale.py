@@ -37,7 +37,7 @@ from toolkit.errors import SceneError
 from toolkit.types import Scene, StreetScale
 
 SCALE_RANGE = (0.05, 20.0)
-METRIC_TOLERANCE = 0.02   # a GPS estimate this close to 1 is taken as metric (within the scale drift)
+METRIC_TOLERANCE = 0.02   # a matching estimate this close to 1 is taken as metric; the band a GPS first guess is checked in
 PAIR_RANGE_M = (50.0, 500.0)
 MIN_PAIRS = 20
 # Without GPS: the heights a street capture's cameras are searched at above the street ground

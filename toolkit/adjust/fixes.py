@@ -4,8 +4,9 @@ Each camera's prior is its warped centre with variance v (1/λ plus the warp's u
 per axis). A camera with a fix of σ (scene x, y) gets the product of the two normal densities in
 x and y: centre (x/v + g/σ²) / (1/v + 1/σ²), variance 1 / (1/v + 1/σ²); its height keeps the
 warp's. A camera the registration placed well (v ≈ 1/λ = 0.05 m²) barely moves towards a 5 m
-fix (weight 0.2 %); a fix without σ counts as 10 m, while one the blend or the bridge placed loosely (v of metres²) is held by the
-fixes around it, which the reprojections tie together. See docs/remake.md.
+fix (weight 0.2 %), while one the blend or the bridge placed loosely (v of metres²) is held by the
+fixes around it, which the reprojections tie together. A fix without σ counts as 10 m
+(``toolkit.io.gps.DEFAULT_SIGMA_M``). See docs/remake.md.
 """
 
 from __future__ import annotations
