@@ -33,7 +33,7 @@ from toolkit.matching.chamfer import ChamferConfig
 from toolkit.matching.config import GroupedParams
 from toolkit.matching.gps import GpsConfig
 from toolkit.matching.route_prior import RoutePriorConfig
-from toolkit.stage import Stage, StageParams
+from toolkit.stage import Handoff, Stage, StageParams
 from toolkit.types import ConjugateGraphs, DataCosts, OverviewSegments, Scene, StreetSegments
 
 
@@ -78,14 +78,14 @@ class DistanceMap(Stage):
     def prefetch_inputs(self) -> tuple[str, ...]:
         return ("overview", "capture")
 
-    def prefetch(self, overview: OverviewSegments, capture: StreetCapture | None) -> CropAtlas:
+    def prefetch(self, overview: OverviewSegments, capture: StreetCapture | None) -> Handoff[CropAtlas]:
         """The distance atlas: it needs only the over-view, so the runner builds it while the
-        street step runs. The COLMAP model that the free-space term and GPS pruning read is read
+        street step runs (handed off, so that it is freed before the (E,L) costs are made). The COLMAP model that the free-space term and GPS pruning read is read
         here too (the scene's reader keeps it): 0.3 s of text parsing on campus."""
         uses_probes = self.params.free_space.used_with(capture)
         if capture is not None and capture.sparse_path is not None and (uses_probes or capture.gps_path is not None):
             capture.require_sparse("unary.distance_map")
-        return self._atlas(overview, uses_probes)
+        return Handoff(self._atlas(overview, uses_probes))
 
     def _atlas(self, overview: OverviewSegments, with_inside: bool) -> CropAtlas:
         p = self.params
@@ -93,11 +93,10 @@ class DistanceMap(Stage):
                                  with_inside)
 
     def __call__(self, graphs: ConjugateGraphs, street: StreetSegments, overview: OverviewSegments,
-                 scene: Scene, capture: StreetCapture | None, obs, prefetched: CropAtlas | None = None) -> DataCosts:
+                 scene: Scene, capture: StreetCapture | None, obs, prefetched: Handoff[CropAtlas] | None = None) -> DataCosts:
         p = self.params
-        costs = DT.null_costs(graphs.n_nodes, graphs.n_labels)
         if graphs.n_nodes == 0 or graphs.n_labels == 1:
-            return costs
+            return DT.null_costs(graphs.n_nodes, graphs.n_labels)
         check_inputs(graphs, street, overview)
         t0 = time.perf_counter()
         geo = pair_geometry(graphs, street, overview)
@@ -110,14 +109,15 @@ class DistanceMap(Stage):
         stats = dict(cand.stats)
         if len(cand.edge) == 0:
             obs.warn("every candidate was pruned: all street edges get the null label")
-            return dataclasses.replace(costs, prior=prior.source, prior_figures=prior.figures)
+            return dataclasses.replace(DT.null_costs(graphs.n_nodes, graphs.n_labels), prior=prior.source,
+                                       prior_figures=prior.figures)
         # 3. street points (fine and a nested coarse subset), dominant walls, free-space probes
         samples = PS.street_samples(street, geo, p.pose, p.chamfer.directional)
         probes = None
         if p.free_space.used_with(capture):
             probes = DT.free_space_probes(capture.sparse, street, samples, geo, p.free_space, stats)
         levels = PS.search_levels(p.search, p.pose)
-        atlas = prefetched if prefetched is not None else self._atlas(overview, probes is not None)
+        atlas = prefetched.take() if prefetched is not None else self._atlas(overview, probes is not None)
         score = PS.Scorer(atlas, geo.A, p.max_elements, probes, p.free_space.weight, p.workers)
         t_setup = time.perf_counter() - t0
         # 4. the coarse search over every candidate
@@ -129,9 +129,12 @@ class DistanceMap(Stage):
                                       anchor=p.anchor, pose=p.pose, angle_deg=p.gps.angle_deg)
         # 5. the best of each edge refined level by level, the others re-scored on the exact map
         final = PS.refine_best(score, coarse, samples, levels, p.pose, stats)
+        stats["atlas_mb"] = round(atlas.nbytes / 2**20, 1)
+        del score, atlas, coarse    # freed before the dense (E,L) arrays: 0.9 + 1.2 GB on the district scene
         # 6. T̂ of each pose, the prior's test on it, costs rescaled to [0, 1]
-        costs = DT.fill_costs(costs, cand, final, geo, prior, p.gps, p.raw_cost_at_null)
-        stats.update(atlas_mb=round(atlas.nbytes / 2**20, 1), setup_s=round(t_setup, 2),
+        costs = DT.fill_costs(DT.null_costs(graphs.n_nodes, graphs.n_labels), cand, final, geo, prior, p.gps,
+                              p.raw_cost_at_null)
+        stats.update(setup_s=round(t_setup, 2),
                      total_s=round(time.perf_counter() - t0, 2))
         if obs.wants_debug:
             DT.debug_costs(obs, stats, costs, geo, samples.fine)

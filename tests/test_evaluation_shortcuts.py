@@ -122,3 +122,19 @@ def test_overview_to_building_with_a_given_overlap():
     plain = T.overview_to_building(labels, 6, buildings, 4, min_iou=0.1)
     given = T.overview_to_building(labels, 6, buildings, 4, min_iou=0.1, overlap=overlap)
     assert all(np.array_equal(x, y) for x, y in zip(plain, given))
+
+
+def test_common_rows_are_those_of_intersect1d():
+    from toolkit.evaluation.scoring import common_rows
+
+    rng = np.random.default_rng(4)
+    for _ in range(200):
+        a = np.unique(rng.integers(0, 100, rng.integers(0, 60)))
+        b = np.unique(rng.integers(0, 100, rng.integers(0, 60)))
+        _, ia, ib = np.intersect1d(a, b, assume_unique=True, return_indices=True)
+        got = common_rows(a, b, len(b))
+        assert np.array_equal(got[0], ia) and np.array_equal(got[1], ib)
+        n = int(rng.integers(0, 100))       # b None: the truth holds rows 0..n-1
+        _, ia, ib = np.intersect1d(a, np.arange(n), assume_unique=True, return_indices=True)
+        got = common_rows(a, None, n)
+        assert np.array_equal(got[0], ia) and np.array_equal(got[1], ib)

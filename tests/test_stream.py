@@ -121,3 +121,20 @@ def test_an_unreachable_scheduler_is_a_one_line_error_and_writes_nothing(tmp_pat
     err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert code == 2 and len(err) == 1 and "--scheduler tcp://127.0.0.1:1: connection refused" in err[0]
     assert not out.exists() and not list(tmp_path.iterdir())
+
+
+def test_npy_rows_read_the_rows_asked_for_without_a_memory_map(tmp_path):
+    from toolkit.stream import NpyRows
+
+    arr = np.random.default_rng(1).normal(size=(1001, 3))
+    np.save(tmp_path / "t.npy", arr)
+    rows = NpyRows.open(tmp_path / "t.npy")
+    assert len(rows) == 1001 and rows.shape == (1001, 3)
+    for lo, hi in ((0, 1001), (0, 1), (17, 530), (1000, 1001), (400, 400), (990, 5000)):
+        np.testing.assert_array_equal(np.asarray(rows[lo:hi]), arr[lo:hi])
+    np.testing.assert_array_equal(np.asarray(rows[100:600][50:70]), arr[150:170])   # a range of a range
+    with pytest.raises(IndexError):
+        rows[::2]
+    np.save(tmp_path / "flat.npy", arr[:, 0])
+    with pytest.raises(ValueError, match="2-D"):
+        NpyRows.open(tmp_path / "flat.npy")

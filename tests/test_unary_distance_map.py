@@ -403,3 +403,16 @@ def test_debug_payloads(toy):
     assert isinstance(obs.records["stats"], DebugText)
     pts = obs.records["best_candidates"]
     assert isinstance(pts, DebugPoints2D) and len(pts.xy) > 0
+
+
+def test_the_prefetched_atlas_is_handed_off_and_gives_the_same_costs(toy, solved, cameras):
+    # the stage takes the atlas out of its Handoff, so that it is freed before the (E,L) arrays are made
+    graphs, want = solved
+    stage = DistanceMap(DistanceMap.Params(route_prior={"enabled": False}))
+    capture = StreetCapture(cameras)
+    handoff = stage.prefetch(toy.overview, capture)
+    got = stage(graphs, toy.street, toy.overview, cameras, capture, NullObserver(), prefetched=handoff)
+    for a, b in ((got.cost, want.cost), (got.theta_rad, want.theta_rad), (got.t, want.t)):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(RuntimeError, match="already taken"):
+        handoff.take()

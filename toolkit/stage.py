@@ -7,7 +7,7 @@ takes only its Params: no I/O. ``from_config`` builds it from a plain mapping (d
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, ClassVar, Mapping, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, ClassVar, Generic, Mapping, Protocol, TypeVar, runtime_checkable
 
 from pydantic import BaseModel, ConfigDict
 
@@ -113,12 +113,30 @@ class Stage:
         """Work that needs only ``prefetch_inputs``; None: nothing to do. The runner calls it in a
         second thread as soon as those inputs are made (``toolkit.overlap.Prefetcher``) and passes
         the result to ``__call__`` as ``prefetched=`` (a stage that overrides it takes that
-        keyword; it is not passed when no prefetch ran). It gets no observer.
+        keyword; it is not passed when no prefetch ran). It gets no observer. A result the stage
+        wants to free before it returns goes in a ``Handoff``: the runner holds its prefetch result
+        until the step ends.
         """
         return None
 
     def __repr__(self) -> str:
         return f"{self.key()}({self.params!r})"
+
+
+T = TypeVar("T")
+
+
+class Handoff(Generic[T]):
+    """A prefetch result its stage takes out (``take``), so that it is freed when the stage drops it."""
+
+    def __init__(self, value: T) -> None:
+        self._value: T | None = value
+
+    def take(self) -> T:
+        value, self._value = self._value, None
+        if value is None:
+            raise RuntimeError("Handoff.take: already taken")
+        return value
 
 
 @runtime_checkable

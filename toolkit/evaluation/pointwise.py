@@ -17,7 +17,7 @@ import numpy as np
 from toolkit.errors import SceneError
 from toolkit.io.attributes import CHUNK_POINTS
 from toolkit.evaluation import metrics as M
-from toolkit.scene import load_array, load_cloud
+from toolkit.scene import load_array, load_cloud, need
 from toolkit.threads import thread_budget
 from toolkit.types import Registration, Scene
 
@@ -98,15 +98,21 @@ def truth_errors(registration: Registration, scene: Scene) -> PointErrors | None
     a large cloud (``Registration.rows``) has those rows moved by its warp a chunk at a time."""
     if not scene.has("truth_street_points"):
         return None
-    true_pts = load_array(scene, "truth_street_points", mmap=registration.rows is not None)
-    rows = truth_rows(scene, len(true_pts))
-    if registration.rows is not None:  # the truth rows moved and compared a chunk at a time
-        from toolkit.stream import active_client, row_errors
+    if registration.rows is not None:  # the truth rows read, moved and compared a chunk at a time
+        from toolkit.stream import NpyRows, active_client, row_errors
 
+        path = need(scene, "truth_street_points", "truth_street_points")
+        try:
+            true_pts = NpyRows.open(path)
+        except Exception as exc:
+            raise SceneError(f"{path}: cannot read .npy ({exc})") from exc
+        rows = truth_rows(scene, len(true_pts))
         wanted = np.arange(len(true_pts)) if rows is None else rows
         errors = row_errors(scene.files.street_cloud, wanted, true_pts, registration.warp, CHUNK_POINTS,
                             active_client())
         return PointErrors(*errors, rows=wanted)
+    true_pts = load_array(scene, "truth_street_points")
+    rows = truth_rows(scene, len(true_pts))
     pts = registration.points if rows is None else np.asarray(registration.points)[rows]
     if true_pts.shape != pts.shape:
         raise SceneError(f"{scene.files.truth_street_points}: shape {true_pts.shape} does not match "

@@ -77,8 +77,7 @@ def match_scores(scene: Scene, matches: Matches | None, street: StreetSegments |
         truth_at = truth_rows(scene, len(labels))
         if truth_at is not None or rows is not None:  # score on the rows both hold
             mine = np.arange(len(street.point_labels)) if rows is None else np.asarray(rows)
-            theirs = np.arange(len(labels)) if truth_at is None else truth_at
-            _, i_mine, i_truth = np.intersect1d(mine, theirs, assume_unique=True, return_indices=True)
+            i_mine, i_truth = common_rows(mine, truth_at, len(labels))
             if not len(i_mine):
                 notes.append("segment-match precision/recall skipped: no street point of the analysis has a "
                              "true label")
@@ -91,6 +90,19 @@ def match_scores(scene: Scene, matches: Matches | None, street: StreetSegments |
     missing += [f"truth.{k}" for k in ("street_labels", "buildings") if not scene.has(f"truth_{k}")]
     notes.append(f"segment-match precision/recall skipped: no {', '.join(missing)}")
     return None
+
+
+def common_rows(a: np.ndarray, b: np.ndarray | None, n_b: int) -> tuple[np.ndarray, np.ndarray]:
+    """Indices into the increasing row numbers ``a`` and ``b`` (None: rows 0..n_b−1) of the rows both
+    hold: what ``np.intersect1d(..., return_indices=True)`` gives, without its sort of both (0.5 GB on
+    17 M rows)."""
+    if b is None:
+        hit = a < n_b
+        return np.flatnonzero(hit), a[hit]
+    at = np.searchsorted(b, a)
+    hit = at < len(b)
+    hit[hit] = b[at[hit]] == a[hit]
+    return np.flatnonzero(hit), at[hit]
 
 
 def camera_scores(scene: Scene, registration: Registration,
