@@ -1,7 +1,7 @@
 """Real-city scene matrix: every recipe on scenes built from real city models it has never seen.
 
     .venv/bin/python bench/cities.py [--only SUBSTR] [--recipes dsm,osm,label_map] [--gps]
-        [--build-only] [--jobs 1] [--set KEY=VALUE ... --tag NAME]
+        [--build-only] [--jobs 1] [--set KEY=VALUE ... --tag NAME] [--holdout]
 
 Six real geometries from ../shared/data/raw (Den Haag LoD2 CityJSON, Delft 3dfier LoD1 CityJSON,
 two districts of Helsinki's OSM extract, two villages of Liechtenstein's OSM extract, cropped with
@@ -30,6 +30,10 @@ run with ``--set`` overrides and ``--tag NAME``, whose outputs go to data/cities
 a hash of the diff). Disk: each run's registered.ply is deleted once scored (registered.laz holds the same
 points; the row keeps its sha256 as ``registered_sha256``, so variants compare byte for byte after their
 folders are gone), and a new variant removes all but the KEEP_VARIANTS − 1 newest out-* folders.
+
+``--holdout``: the held-out matrix, the same cities and routes with other seeds (+100) and each scene
+given another scene's drift, cached and run under data/cities-holdout/ (its own results.json):
+scenes on which no default and no status limit was chosen, to check that they hold.
 
 ``--gps-sigma-m S --gps-every N`` (with --gps, needs --tag): the runs use fixes made for the bench
 from truth/cameras.txt, every N-th image with a slowly wandering error of S m per axis (the
@@ -141,9 +145,20 @@ class Scene:
                 f"tilt<={k['max_tilt_deg']:g}, scale {100 * k['scale_drift']:+g}%")
 
 
-def scenes() -> list[Scene]:
+# --holdout: the same cities and routes with other seeds (+HOLDOUT_SEED) and each scene given the
+# drift of the scene HOLDOUT_SHIFT rows further down MATRIX: scenes no default was chosen on
+HOLDOUT_SEED, HOLDOUT_SHIFT = 100, 5
+
+
+def holdout_matrix() -> list[tuple]:
+    drift = [row[3:] for row in MATRIX]
+    return [(city, route, seed + HOLDOUT_SEED, *drift[(k + HOLDOUT_SHIFT) % len(MATRIX)])
+            for k, (city, route, seed, *_) in enumerate(MATRIX)]
+
+
+def scenes(matrix: list[tuple] | None = None) -> list[Scene]:
     out = []
-    for city, route, seed, hw, prw, tilt, scale in MATRIX:
+    for city, route, seed, hw, prw, tilt, scale in matrix or MATRIX:
         c = CITIES[city]
         knobs = {
             **c.knobs,
@@ -404,6 +419,12 @@ def print_table(rows: list[dict]) -> None:
     n = sum(r["meets_bar"] for r in rows)
     print(f"\n{n} of {len(rows)} runs meet the bar (horizontal median <= 0.5 m AND p95 <= 1.5 m "
           f"(3D for dsm, 'h' horizontal for osm/label_map) AND 3D mean < rigid-fit mean)")
+    flagged = [r["status"] != "ok" for r in rows]
+    cells = {(f, a): sum(1 for r, fl in zip(rows, flagged) if fl == f and bool(r["meets_bar"]) == a)
+             for f in (True, False) for a in (True, False)}
+    gross_ok = sum(1 for r, fl in zip(rows, flagged) if not fl and (r["horizontal_median_m"] or 0) > 2.0)
+    print(f"status x accuracy: flagged & accurate {cells[True, True]}, flagged & not {cells[True, False]}, "
+          f"ok & accurate {cells[False, True]}, ok & not {cells[False, False]}; 'ok' runs > 2 m off: {gross_ok}")
 
 
 def code_state() -> tuple[str, str]:
@@ -455,6 +476,8 @@ def main() -> int:
                                               "the code state + TAG")
     ap.add_argument("--gps-sigma-m", type=float, help="with --gps: bench-made fixes of this error (m; needs --tag)")
     ap.add_argument("--gps-every", type=int, default=1, help="with --gps-sigma-m: a fix every N images")
+    ap.add_argument("--holdout", action="store_true", help="the held-out matrix: other seeds and drifts, under "
+                                                           "data/cities-holdout/")
     args = ap.parse_args()
     if args.gps_sigma_m is not None and not (args.gps and args.tag):
         sys.exit("--gps-sigma-m needs --gps and --tag")
@@ -469,7 +492,11 @@ def main() -> int:
     bad = [r for r in recipes if not (REPO / "recipes" / f"{r}.yaml").is_file()]
     if bad:
         sys.exit(f"unknown recipe(s): {', '.join(bad)}")
-    every = scenes()
+    if args.holdout:
+        global ROOT, OUT, RESULTS
+        ROOT = REPO / "data" / "cities-holdout"
+        OUT, RESULTS = ROOT / "out", ROOT / "results.json"
+    every = scenes(holdout_matrix() if args.holdout else None)
     chosen = [s for s in every if not args.only or args.only in s.name]
     if not chosen:
         sys.exit(f"--only {args.only!r}: no scene matches ({', '.join(s.name for s in every)})")
