@@ -80,8 +80,9 @@ class DistanceMap(Stage):
 
     def prefetch(self, overview: OverviewSegments, capture: StreetCapture | None) -> Handoff[CropAtlas]:
         """The distance atlas: it needs only the over-view, so the runner builds it while the
-        street step runs (handed off, so that it is freed before the (E,L) costs are made). The COLMAP model that the free-space term and GPS pruning read is read
-        here too (the scene's reader keeps it): 0.3 s of text parsing on campus."""
+        street step runs (in a ``Handoff``: the step frees it before it makes the (E,L) costs). The
+        COLMAP model that the free-space term and GPS pruning read is read here too (the scene's
+        reader keeps it): 0.3 s of text parsing on campus."""
         uses_probes = self.params.free_space.used_with(capture)
         if capture is not None and capture.sparse_path is not None and (uses_probes or capture.gps_path is not None):
             capture.require_sparse("unary.distance_map")
@@ -93,7 +94,8 @@ class DistanceMap(Stage):
                                  with_inside)
 
     def __call__(self, graphs: ConjugateGraphs, street: StreetSegments, overview: OverviewSegments,
-                 scene: Scene, capture: StreetCapture | None, obs, prefetched: Handoff[CropAtlas] | None = None) -> DataCosts:
+                 scene: Scene, capture: StreetCapture | None, obs,
+                 prefetched: Handoff[CropAtlas] | None = None) -> DataCosts:
         p = self.params
         if graphs.n_nodes == 0 or graphs.n_labels == 1:
             return DT.null_costs(graphs.n_nodes, graphs.n_labels)
@@ -134,8 +136,7 @@ class DistanceMap(Stage):
         # 6. T̂ of each pose, the prior's test on it, costs rescaled to [0, 1]
         costs = DT.fill_costs(DT.null_costs(graphs.n_nodes, graphs.n_labels), cand, final, geo, prior, p.gps,
                               p.raw_cost_at_null)
-        stats.update(setup_s=round(t_setup, 2),
-                     total_s=round(time.perf_counter() - t0, 2))
+        stats.update(setup_s=round(t_setup, 2), total_s=round(time.perf_counter() - t0, 2))
         if obs.wants_debug:
             DT.debug_costs(obs, stats, costs, geo, samples.fine)
         return costs
