@@ -234,3 +234,15 @@ def test_compare_tables_have_status_and_confidence(tmp_path):
     assert [t["status"] for t in table] == ["1/2 unreliable", "ok"] and float(table[0]["confidence"]) == 0.6
     with open(tmp_path / "runs.csv") as fh:
         assert [r["status"] for r in csv.DictReader(fh)] == ["ok", "unreliable", "ok"]
+
+
+def test_the_camera_gap_limit_is_half_the_warps_bridge_span():
+    # camera_gap_p90_m is a camera's distance to the nearest camera that sees a registered façade; the warp
+    # bridges spans of bridge_min_gap_m between such cameras, whose middle is half a span from either end
+    from plugins.warp_inverse_log import InverseLog
+
+    span = InverseLog.Params().bridge_min_gap_m
+    rule = StatusRule()
+    assert rule.max_camera_gap_p90_m == span / 2
+    assert rule.judge({**GOOD, "camera_gap_p90_m": 0.45 * span}).status == "ok"
+    assert rule.judge({**GOOD, "camera_gap_p90_m": 0.55 * span}).status == "unreliable"

@@ -70,9 +70,10 @@ class StatusRule:
     max_outside_grid_share: float = 0.5
     max_segment_scale_deviation: float = 0.035   # |median segment scale − 1|: drift of ±3 % moves it ≤ 1.5 %
     max_route_links_broken: int = 0     # route placement (no GPS): neighbouring windows placed apart
-    # the warp bridges route gaps from 100 m on (warp.inverse_log bridge_min_gap_m): cameras that far from a
-    # registered façade rest on the trajectory's own drift
-    max_camera_gap_p90_m: float = 100.0
+    # the warp bridges route gaps of 100 m or more between cameras that see a registered façade
+    # (warp.inverse_log bridge_min_gap_m); a camera inside such a gap is up to half of it from the nearest
+    # one, and there the registration rests on the trajectory's own drift
+    max_camera_gap_p90_m: float = 50.0
     min_camera_height_m: float = 0.8    # street capture: handheld ~1.5 m, car roof ~2.5 m, mast ~4 m
     max_camera_height_m: float = 6.0
     gps_sigma_factor: float = 3.0       # GPS tolerance = max(gps_sigma_factor · σ, gps_min_tolerance_m)
