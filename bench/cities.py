@@ -150,6 +150,12 @@ class Scene:
 HOLDOUT_SEED, HOLDOUT_SHIFT = 100, 5
 
 
+def use_root(root: Path) -> None:
+    """Scenes, run outputs and results.json under ``root`` (the helpers here read these module globals)."""
+    global ROOT, OUT, RESULTS
+    ROOT, OUT, RESULTS = root, root / "out", root / "results.json"
+
+
 def holdout_matrix() -> list[tuple]:
     drift = [row[3:] for row in MATRIX]
     return [(city, route, seed + HOLDOUT_SEED, *drift[(k + HOLDOUT_SHIFT) % len(MATRIX)])
@@ -493,9 +499,7 @@ def main() -> int:
     if bad:
         sys.exit(f"unknown recipe(s): {', '.join(bad)}")
     if args.holdout:
-        global ROOT, OUT, RESULTS
-        ROOT = REPO / "data" / "cities-holdout"
-        OUT, RESULTS = ROOT / "out", ROOT / "results.json"
+        use_root(REPO / "data" / "cities-holdout")
     every = scenes(holdout_matrix() if args.holdout else None)
     chosen = [s for s in every if not args.only or args.only in s.name]
     if not chosen:

@@ -97,8 +97,7 @@ def main() -> int:
     routes = args.routes.split(",")
     recipes = [r.strip() for r in args.recipes.split(",") if r.strip()]
 
-    C.ROOT = REPO / "data" / "cities-clean"  # cities.py's helpers read these module globals
-    C.OUT, C.RESULTS = C.ROOT / "out", C.ROOT / "results.json"
+    C.use_root(REPO / "data" / "cities-clean")
     chosen = [replace(s, knobs={**s.knobs, **CLEAN}) for s in C.scenes()
               if s.route in routes and (not args.only or args.only in s.name)]
     code = C.generator_stamp()
