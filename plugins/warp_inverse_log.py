@@ -4,7 +4,8 @@ Every street point and every camera pose is moved by the weighted average of the
 segment and that segment's K nearest valid neighbours (``neighbours_k`` for points,
 ``camera_neighbours_k`` for cameras), ``w = 1/log(d)`` with d the horizontal
 distance to each segment's footprint, clamped to ``min_distance_m`` because log(d) ≤ 0 for
-d ≤ 1 m. Rotations are averaged as quaternions (principal eigenvector), translations about the
+d ≤ 1 m; a camera's weights are also multiplied by size / (size + arm) of each footprint
+(``camera_lever_arm``: a small fragment's rotation error is large at a camera far from it). Rotations are averaged as quaternions (principal eigenvector), translations about the
 point itself (``toolkit.warp.blend``). Points without a valid carrier segment are anchored on the
 nearest valid segment: every input point is moved, in input order. A camera is anchored on the
 segment it observes most (``toolkit.warp.apply``). Neighbours whose transform disagrees with the
@@ -45,6 +46,9 @@ class InverseLog(Stage):
             4, ge=0, le=64,
             description="Neighbouring segments blended into each camera pose with its "
                         "anchor segment (count; 0: the anchor's transform alone)")
+        camera_lever_arm: bool = Field(
+            True, description="Also weigh each transform blended at a camera by its footprint's size over that "
+                              "size plus the camera's distance from the footprint's centre (off: 1/log d alone)")
         min_distance_m: float = Field(
             10.0, gt=1.0,
             description="Lower clamp on the distance d in the 1/log d blending weight "
@@ -90,4 +94,4 @@ class InverseLog(Stage):
                           p.weight_cell_m, PassCheck(p.pass_gap_m, p.pass_sparse_gap_m),
                           relative=p.relative_distance, camera_k=p.camera_neighbours_k,
                           bridge_min_observations=p.bridge_min_observations,
-                          bridge_min_gap_m=p.bridge_min_gap_m)
+                          bridge_min_gap_m=p.bridge_min_gap_m, camera_lever=p.camera_lever_arm)

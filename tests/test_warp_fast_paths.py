@@ -244,3 +244,35 @@ def test_camera_spread_is_zero_for_agreeing_transforms_and_grows_with_disagreeme
     off[index.valid[1::2], :3, 3] += [0.0, 2.0, 0.0]          # every other segment placed 2 m off
     _, _, spread2 = blend_rigid(cams, xy, anchors, off, index, 4, 1.5)
     assert np.all(spread2 <= 1.0 + 1e-9) and spread2.max() > 0.3    # ≤ half the gap, weighted RMS
+
+
+def test_a_small_fragment_weighs_less_at_a_camera_far_from_its_centre():
+    """A camera 6 m off a 40 m façade (exact transform) and 21 m from a 3 m fragment whose transform is
+    turned by 3° about the fragment: the fragment's error is small on itself and large at the camera,
+    so the lever weighting puts the camera nearer its true place than 1/log d alone, and it leaves
+    transforms that agree alone."""
+    from toolkit.warp.blend import blend_rigid
+
+    wall = np.column_stack([np.linspace(0.0, 40.0, 81), np.zeros(81)])
+    frag = np.column_stack([np.linspace(58.0, 61.0, 7), np.full(7, 12.0)])
+    labels = np.zeros(0, np.int32)
+    street = StreetSegments(origin=np.zeros(3), up_rotation=np.eye(3), point_labels=labels, carrier=labels,
+                            ids=np.arange(2), boundary_xy=(wall, frag), centroids=np.array([[20.0, 0.0], [59.5, 12.0]]),
+                            extent_m=np.array([40.0, 3.0]), ground_z=np.zeros(2),
+                            ground_normal=np.tile([0.0, 0.0, 1.0], (2, 1)))
+    T = np.repeat(np.eye(4)[None], 2, axis=0)
+    pivot = np.array([59.5, 12.0, 0.0])
+    T[1, :3, :3] = Rotation.from_euler("z", 3, degrees=True).as_matrix()
+    T[1, :3, 3] = pivot - T[1, :3, :3] @ pivot
+    transforms = SegmentTransforms(T=T, valid=np.ones(2, bool), cost=np.zeros(2), confidence=np.ones(2))
+    index = SegmentIndex.build(street, transforms, 1)
+    cam = np.array([[40.0, 6.0, 2.0]])
+    off = np.linalg.norm(frag - cam[0, :2], axis=1).min()
+    assert off > 15 and np.linalg.norm(T[1, :2, :2] @ cam[0, :2] + T[1, :2, 3] - cam[0, :2]) > 0.9  # precondition
+    plain, _, _ = blend_rigid(cam, cam[:, :2], np.array([0]), T, index, 1, 10.0)
+    lever, _, _ = blend_rigid(cam, cam[:, :2], np.array([0]), T, index, 1, 10.0, lever=True)
+    error = lambda p: float(np.linalg.norm(p[0] - cam[0]))   # noqa: E731 — the camera's true place is where it is
+    assert error(lever) < 0.6 * error(plain)
+    same = np.repeat(T[:1], 2, axis=0)
+    exact, _, _ = blend_rigid(cam, cam[:, :2], np.array([0]), same, index, 1, 10.0, lever=True)
+    assert np.allclose(exact, cam)

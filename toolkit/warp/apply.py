@@ -87,20 +87,21 @@ def warp_scene(transforms: SegmentTransforms, street: StreetSegments, capture: S
                agree_tol_m: float = np.inf, agree_ratio: float = 0.0, max_gap_m: float = np.inf,
                cell_m: float = 0.5, passes: PassCheck = PassCheck(), relative: bool = False,
                camera_k: int | None = None, bridge_min_observations: int = 0,
-               bridge_min_gap_m: float = 0.0) -> Registration:
+               bridge_min_gap_m: float = 0.0, camera_lever: bool = False) -> Registration:
     """Blend points over their anchor and its k neighbours, cameras over camera_k (None: k); cameras
     that see fewer than ``bridge_min_observations`` registered façade points follow the street path
-    between those that do (``toolkit.warp.bridge``; 0: off)."""
+    between those that do (``toolkit.warp.bridge``; 0: off); ``camera_lever``: ``blend_rigid``'s lever
+    weighting for the cameras."""
     with single_threaded_blas():
         return _warp_scene(transforms, street, capture, k, d_min, agree_tol_m, agree_ratio, max_gap_m, cell_m, passes,
                            relative, k if camera_k is None else camera_k, bridge_min_observations,
-                           bridge_min_gap_m)
+                           bridge_min_gap_m, camera_lever)
 
 
 def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, capture: StreetCapture, k: int,
                 d_min: float, agree_tol_m: float, agree_ratio: float, max_gap_m: float, cell_m: float,
                 passes: PassCheck, relative: bool, camera_k: int, bridge_min_observations: int,
-                bridge_min_gap_m: float) -> Registration:
+                bridge_min_gap_m: float, camera_lever: bool) -> Registration:
     T = np.asarray(transforms.T, np.float64)
     valid = np.asarray(transforms.valid, bool)
     pts = capture.points
@@ -167,7 +168,7 @@ def _warp_scene(transforms: SegmentTransforms, street: StreetSegments, capture: 
                 cam_anchor = reanchor_other_pass(cam_anchor, cxy, np.where(unseen, cam_s, np.nan), segment_s,
                                                  np.asarray(index.all_tree.data), index.all_seg,
                                                  passes.pass_gap_m)
-        pos, Rb, spread = blend_rigid(C, cxy, cam_anchor, T, index, camera_k, d_min, relative)
+        pos, Rb, spread = blend_rigid(C, cxy, cam_anchor, T, index, camera_k, d_min, relative, camera_lever)
         if bridge_min_observations > 0 and len(model.points3d):
             facade_seg = found[1] if passes.pass_gap_m is not None else sparse_segments(
                 model, pts, carrier, np.ones(len(street), bool), only=np.asarray(street.point_labels) >= 0)

@@ -191,10 +191,16 @@ def blend_points(points: np.ndarray, xy: np.ndarray, anchors: np.ndarray, T: np.
 
 
 def blend_rigid(points: np.ndarray, xy: np.ndarray, anchors: np.ndarray, T: np.ndarray, index: SegmentIndex,
-                k: int, d_min: float, relative: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                k: int, d_min: float, relative: bool = False, lever: bool = False
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Blended rigid transform at a few points (cameras): (M,3) new positions, (M,3,3) rotations and
     (M,) spread: the weighted RMS distance of the blended transforms' placements of each point from
-    its blended position (metres; 0 with a single transform), how much they disagree there."""
+    its blended position (metres; 0 with a single transform), how much they disagree there.
+
+    lever: each 1/log d weight is also multiplied by size / (size + arm), size the footprint's extent
+    and arm the point's distance from the footprint's centre. A transform is fitted to its footprint,
+    so its rotation error moves a point in proportion to the arm over the footprint's size: a few
+    metres of façade fragment says little about a camera 20 m from it."""
     M = len(points)
     K = k + 1
     cand = np.zeros((M, K), np.int64)
@@ -208,7 +214,13 @@ def blend_rigid(points: np.ndarray, xy: np.ndarray, anchors: np.ndarray, T: np.n
         cand[grp, :len(c)] = c
         cand[grp, len(c):] = c[0]
         if len(c) > 1:
-            w[grp, :len(c)] = inverse_log_weights(point_distances(xy[grp], index.footprints(c)), d_min, relative)
+            fps = index.footprints(c)
+            w[grp, :len(c)] = inverse_log_weights(point_distances(xy[grp], fps), d_min, relative)
+            if lever:
+                size = np.array([np.linalg.norm(f.max(axis=0) - f.min(axis=0)) for f in fps])
+                centre = np.array([f.mean(axis=0) for f in fps])
+                arm = np.linalg.norm(xy[grp][:, None, :] - centre[None], axis=2)
+                w[grp, :len(c)] *= size / (size + arm)
         else:
             w[grp, 0] = 1.0
     w /= w.sum(axis=1, keepdims=True)
