@@ -5,8 +5,9 @@ segment and that segment's K nearest valid neighbours (``neighbours_k`` for poin
 ``camera_neighbours_k`` for cameras), ``w = 1/log(d)`` with d the horizontal
 distance to each segment's footprint, clamped to ``min_distance_m`` because log(d) ≤ 0 for
 d ≤ 1 m; a camera's weights are also multiplied by size / (size + arm) of each footprint
-(``camera_lever_arm``: a small fragment's rotation error is large at a camera far from it). Rotations are averaged as quaternions (principal eigenvector), translations about the
-point itself (``toolkit.warp.blend``). Points without a valid carrier segment are anchored on the
+(``camera_lever_arm``: a small fragment's rotation error is large at a camera far from it).
+Rotations are averaged as quaternions (principal eigenvector), translations about the point
+itself (``toolkit.warp.blend``). Points without a valid carrier segment are anchored on the
 nearest valid segment: every input point is moved, in input order. A camera is anchored on the
 segment it observes most (``toolkit.warp.apply``). Neighbours whose transform disagrees with the
 anchor's, or captured farther than ``pass_gap_m`` from it along the route (another pass of the route

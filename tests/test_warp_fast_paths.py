@@ -276,3 +276,23 @@ def test_a_small_fragment_weighs_less_at_a_camera_far_from_its_centre():
     same = np.repeat(T[:1], 2, axis=0)
     exact, _, _ = blend_rigid(cam, cam[:, :2], np.array([0]), same, index, 1, 10.0, lever=True)
     assert np.allclose(exact, cam)
+
+
+def test_the_lever_weighting_stays_finite_for_one_point_footprints_under_the_camera():
+    """Footprints of a single point (extent 0) with the camera right on one of them: the weights do
+    not become 0 / 0 and the camera moves with the transforms' mean."""
+    from toolkit.warp.blend import blend_rigid
+
+    fps = (np.array([[0.0, 0.0]]), np.array([[5.0, 0.0]]))
+    labels = np.zeros(0, np.int32)
+    street = StreetSegments(origin=np.zeros(3), up_rotation=np.eye(3), point_labels=labels, carrier=labels,
+                            ids=np.arange(2), boundary_xy=fps, centroids=np.array([[0.0, 0.0], [5.0, 0.0]]),
+                            extent_m=np.zeros(2), ground_z=np.zeros(2), ground_normal=np.tile([0.0, 0.0, 1.0], (2, 1)))
+    T = np.repeat(np.eye(4)[None], 2, axis=0)
+    T[:, 0, 3] = [1.0, 3.0]
+    transforms = SegmentTransforms(T=T, valid=np.ones(2, bool), cost=np.zeros(2), confidence=np.ones(2))
+    index = SegmentIndex.build(street, transforms, 1)
+    cam = np.array([[0.0, 0.0, 2.0]])
+    pos, R, spread = blend_rigid(cam, cam[:, :2], np.array([0]), T, index, 1, 10.0, lever=True)
+    assert np.isfinite(pos).all() and np.isfinite(R).all() and np.isfinite(spread).all()
+    assert 1.0 < pos[0, 0] < 3.0

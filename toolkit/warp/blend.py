@@ -217,7 +217,8 @@ def blend_rigid(points: np.ndarray, xy: np.ndarray, anchors: np.ndarray, T: np.n
             fps = index.footprints(c)
             w[grp, :len(c)] = inverse_log_weights(point_distances(xy[grp], fps), d_min, relative)
             if lever:
-                size = np.array([np.linalg.norm(f.max(axis=0) - f.min(axis=0)) for f in fps])
+                # at least one footprint cell (SegmentIndex thins footprints to 1 m): never 0 / 0
+                size = np.maximum([np.linalg.norm(f.max(axis=0) - f.min(axis=0)) for f in fps], 1.0)
                 centre = np.array([f.mean(axis=0) for f in fps])
                 arm = np.linalg.norm(xy[grp][:, None, :] - centre[None], axis=2)
                 w[grp, :len(c)] *= size / (size + arm)
