@@ -66,11 +66,12 @@ def main() -> None:
     variant = [rows_of(results, k) for k in args.variant]
     runs = sorted(set(base[0]).intersection(*map(set, base[1:] + variant)))
     print(f"{len(runs)} runs in every key")
-    for key, state in zip(args.base + args.variant, base + variant):
-        print(f"  {'variant' if state in variant else 'base':7s} {key:36s} meet the bar {bar_count(state, runs):3d}")
+    for i, (key, state) in enumerate(zip(args.base + args.variant, base + variant)):
+        print(f"  {'base' if i < len(base) else 'variant':7s} {key:36s} meet the bar {bar_count(state, runs):3d}")
     pairs = list(itertools.combinations(range(len(base)), 2))
     flips = [sum(meets_bar(base[i][r]) != meets_bar(base[j][r]) for r in runs) for i, j in pairs]
-    print(f"the floor: runs that flip the bar between two base replicas: {flips}")
+    print(f"the floor: runs that flip the bar between two base replicas: {flips}" if flips
+          else "the floor: one base replica, no spread to show (give two or more)")
     print(f"\n{'scene':17s} {'source':9s} gps  h median, base replicas    p95, base replicas")
     for r in runs:
         h = " ".join(f"{figures(s[r])[0]:6.2f}" for s in base)
