@@ -23,10 +23,7 @@ import itertools
 import json
 import statistics
 
-from _common import REPO
-from cities import meets_bar
-
-RESULTS = REPO / "data" / "cities" / "results.json"
+from cities import RESULTS, meets_bar
 
 
 def rows_of(results: dict, key: str) -> dict[tuple, dict]:

@@ -218,8 +218,8 @@ def blend_rigid(points: np.ndarray, xy: np.ndarray, anchors: np.ndarray, T: np.n
             w[grp, :len(c)] = inverse_log_weights(point_distances(xy[grp], fps), d_min, relative)
             if lever:
                 # at least one footprint cell (SegmentIndex thins footprints to 1 m): never 0 / 0
-                size = np.maximum([np.linalg.norm(f.max(axis=0) - f.min(axis=0)) for f in fps], 1.0)
-                centre = np.array([f.mean(axis=0) for f in fps])
+                size, centre = index.extents(c)
+                size = np.maximum(size, 1.0)
                 arm = np.linalg.norm(xy[grp][:, None, :] - centre[None], axis=2)
                 w[grp, :len(c)] *= size / (size + arm)
         else:

@@ -8,6 +8,7 @@ segment of many points is settled per cell where the cell allows a single answer
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -171,6 +172,17 @@ class SegmentIndex:
     def footprints(self, segments: np.ndarray) -> list[np.ndarray]:
         """The (thinned) footprint xy of each of the given valid segments."""
         return [self.trees[int(j)].data for j in segments]
+
+    @functools.cached_property
+    def _extents(self) -> dict[int, tuple[float, np.ndarray]]:
+        return {j: (float(np.linalg.norm(t.data.max(axis=0) - t.data.min(axis=0))), t.data.mean(axis=0))
+                for j, t in self.trees.items()}
+
+    def extents(self, segments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(size (n,): bounding-box diagonal of each thinned footprint, m; centre (n,2): its mean xy)
+        of the given valid segments, computed once per segment."""
+        e = [self._extents[int(j)] for j in segments]
+        return np.array([size for size, _ in e]), np.array([centre for _, centre in e]).reshape(-1, 2)
 
     def distances(self, cand: np.ndarray, xy: np.ndarray) -> np.ndarray:
         w = query_workers(len(xy))
