@@ -1,16 +1,22 @@
 """How well the run status (toolkit/status.py) tells failed runs from good ones, city by city.
 
-Reads the runs of bench/cities.py (data/cities/out/*/metrics.json: the truth-free ``assessment`` and
-the truth figures), and prints:
-- the confusion table (flagged × accurate) of the rule the runs were judged with, and its gross
+Reads the runs of bench/cities.py (``--out-dir``, repeatable: e.g. every replica and the held-out
+matrix; <dir>/*/metrics.json: the truth-free ``assessment`` and the truth figures; a run found twice
+with the same figures counts once), and prints:
+- the confusion table (flagged × accurate) of the current rule (StatusRule's defaults), and its gross
   failures (horizontal median > 2 m) that were not flagged;
 - a leave-one-city-out choice of the rule's main hard limits (façade distance and support, registered
   point share, median segment scale, neighbour disagreement) and of ``min_confidence``: for each city, the limits are chosen on the other
   cities' runs only (every gross failure there flagged, then the fewest accurate runs flagged,
   then the limits farthest from the runs that decided them), and the held-out city's runs are
   judged with them. Nothing is re-run: ``StatusRule.judge`` works from the stored figures.
+- a leave-one-city-out choice of ``min_confidence`` alone, the other limits at their defaults:
+  every gross failure flagged, then the fewest accurate runs flagged, then the most
+  inaccurate runs flagged, then the middle of the values that do equally well (the confidence
+  limit is the rule's catch-all for runs no hard limit names; the full grid above takes minutes on
+  several hundred runs, ``--confidence-only`` skips it).
 
-usage: python bench/status_calibration.py [--out-dir data/cities/out]
+usage: python bench/status_calibration.py [--out-dir data/cities/out ...] [--confidence-only]
 """
 
 from __future__ import annotations
@@ -29,6 +35,7 @@ GROSS_M = 2.0
 
 
 def load_runs(out_dir: Path) -> list[dict]:
+    """The runs of one output folder of bench/cities.py; their scenes are its parent's folders."""
     runs = []
     for m_path in sorted(out_dir.glob("*/metrics.json")):
         m = json.loads(m_path.read_text())
@@ -36,8 +43,8 @@ def load_runs(out_dir: Path) -> list[dict]:
         if not truth or "assessment" not in m:
             continue
         name = m_path.parent.name
-        stamp = json.loads((REPO / "data" / "cities" / _scene_of(name) / "stamp.json").read_text()) \
-            if (REPO / "data" / "cities" / _scene_of(name) / "stamp.json").is_file() else {}
+        stamp_path = out_dir.parent / _scene_of(name) / "stamp.json"  # data/cities or data/cities-holdout
+        stamp = json.loads(stamp_path.read_text()) if stamp_path.is_file() else {}
         h = truth["horizontal"]["median_m"]
         recipe = name.removesuffix("-gps")[len(_scene_of(name)) + 1:]
         p95 = truth["error_3d"]["p95_m"] if recipe == "dsm" else truth["horizontal"]["p95_m"]
@@ -45,7 +52,19 @@ def load_runs(out_dir: Path) -> list[dict]:
         accurate = h <= 0.5 and p95 <= 1.5 and (rigid is None or truth["error_3d"]["mean_m"] < rigid)
         runs.append({"name": name, "city": _city_of(name), "h": h, "accurate": accurate,
                      "gross": h > GROSS_M, "figures": m["assessment"], "rule": m.get("status_rule", {}),
-                     "status": m["status"]})
+                     "status": m["status"], "dir": f"{out_dir.parent.name}/{out_dir.name}"})
+    return runs
+
+
+def load_all(out_dirs: list[Path]) -> list[dict]:
+    """The runs of several output folders; a run found twice with the same figures counts once."""
+    seen, runs = set(), []
+    for out_dir in out_dirs:
+        for r in load_runs(out_dir):
+            key = (r["name"], json.dumps(r["figures"], sort_keys=True))
+            if key not in seen:
+                seen.add(key)
+                runs.append(r)
     return runs
 
 
@@ -70,23 +89,70 @@ def confusion(runs: list[dict], flagged: list[bool]) -> str:
             f"gross failures {int(g.sum())}, unflagged {int((g & ~f).sum())}")
 
 
+def choose_confidence(runs: list[dict], base, grid: list[float]) -> tuple[float, tuple]:
+    """``min_confidence`` on ``runs``: no gross failure missed, fewest accurate runs flagged, most
+    inaccurate runs flagged; among the values that do equally well, the middle one (farthest from
+    the runs that decided the range)."""
+    keys = []
+    for value in grid:
+        rule = dataclasses.replace(base, min_confidence=value)
+        f = [rule.judge(r["figures"]).status != "ok" for r in runs]
+        missed = sum(r["gross"] and not x for r, x in zip(runs, f))
+        false = sum(r["accurate"] and x for r, x in zip(runs, f))
+        caught = sum(not r["accurate"] and x for r, x in zip(runs, f))
+        keys.append((missed, false, -caught))
+    best = min(keys)
+    equal = [v for v, k in zip(grid, keys) if k == best]
+    middle = (equal[0] + equal[-1]) / 2
+    return min(equal, key=lambda v: (round(abs(v - middle), 6), v)), best + ((equal[0], equal[-1]),)
+
+
+def confidence_only(runs: list[dict], base) -> None:
+    grid = [round(v, 2) for v in np.arange(0.3, 0.801, 0.05)]
+    cities = sorted({r["city"] for r in runs})
+    held: dict[int, bool] = {}
+    print(f"\nmin_confidence alone, leave one city out (grid {grid[0]}-{grid[-1]}; the other limits at their defaults):")
+    for city in cities:
+        value, key = choose_confidence([r for r in runs if r["city"] != city], base, grid)
+        rule = dataclasses.replace(base, min_confidence=value)
+        test = [r for r in runs if r["city"] == city]
+        for r in test:
+            held[id(r)] = rule.judge(r["figures"]).status != "ok"
+        print(f"  {city:12s} chosen {value:.2f}  train missed {key[0]}, false flags {key[1]}, inaccurate flagged "
+              f"{-key[2]} (equally good {key[3][0]:.2f}-{key[3][1]:.2f}); held out: {confusion(test, [held[id(r)] for r in test])}")
+    print(f"held-out, all cities: {confusion(runs, [held[id(r)] for r in runs])}")
+    value, key = choose_confidence(runs, base, grid)
+    print(f"chosen on all cities: {value:.2f}, equally good {key[3][0]:.2f}-{key[3][1]:.2f} ({confusion(runs, [dataclasses.replace(base, min_confidence=value).judge(r['figures']).status != 'ok' for r in runs])})")
+    for r in runs:
+        if held[id(r)] and r["accurate"]:
+            print(f"  held-out flagged accurate run: {r['dir']}/{r['name']} (confidence "
+                  f"{base.judge(r['figures']).confidence:.2f})")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out-dir", type=Path, default=REPO / "data" / "cities" / "out")
+    ap.add_argument("--out-dir", type=Path, action="append",
+                    help="a bench/cities.py output folder (repeatable; default data/cities/out)")
+    ap.add_argument("--confidence-only", action="store_true", help="only the min_confidence choice")
     args = ap.parse_args()
     from toolkit.status import StatusRule
 
-    runs = load_runs(args.out_dir)
+    out_dirs = args.out_dir or [REPO / "data" / "cities" / "out"]
+    runs = load_all(out_dirs)
     if not runs:
-        raise SystemExit(f"{args.out_dir}: no runs with truth and an assessment (run bench/cities.py first)")
-    base = StatusRule.from_dict(runs[0]["rule"]) if runs[0]["rule"] else StatusRule()
+        raise SystemExit(f"{', '.join(map(str, out_dirs))}: no runs with truth and an assessment "
+                         "(run bench/cities.py first)")
+    base = StatusRule()  # the current defaults (runs of older states were judged with their own rule)
     flagged = [base.judge(r["figures"]).status != "ok" for r in runs]
-    print(f"{len(runs)} runs; the rule they were judged with: {confusion(runs, flagged)}")
+    print(f"{len(runs)} runs; the current rule: {confusion(runs, flagged)}")
     for r, f in zip(runs, flagged):
         if r["gross"] and not f:
-            print(f"  unflagged gross failure: {r['name']} (h median {r['h']:.1f} m)")
+            print(f"  unflagged gross failure: {r['dir']}/{r['name']} (h median {r['h']:.1f} m)")
         if r["accurate"] and f:
-            print(f"  flagged accurate run: {r['name']}: {base.judge(r['figures']).reasons[:1]}")
+            print(f"  flagged accurate run: {r['dir']}/{r['name']}: {base.judge(r['figures']).reasons[:1]}")
+    if args.confidence_only:
+        confidence_only(runs, base)
+        return 0
 
     grid = {"max_facade_distance_median_m": [0.8, 1.0, 1.2, 1.5, 2.0],
             "min_facade_support_share": [0.2, 0.3, 0.4, 0.5, 0.6],
@@ -95,7 +161,7 @@ def main() -> int:
             "max_neighbour_disagree_share": [0.2, 0.3, 0.4, 0.5, 0.6],
             "min_confidence": [0.3, 0.4, 0.5, 0.6]}
     cities = sorted({r["city"] for r in runs})
-    held_flags: dict[str, bool] = {}
+    held_flags: dict[int, bool] = {}
     print("\nleave one city out (limits chosen on the other cities):")
     for city in cities:
         train = [r for r in runs if r["city"] != city]
@@ -112,11 +178,12 @@ def main() -> int:
                 best, best_key = rule, key
         test = [r for r in runs if r["city"] == city]
         for r in test:
-            held_flags[r["name"]] = best.judge(r["figures"]).status != "ok"
+            held_flags[id(r)] = best.judge(r["figures"]).status != "ok"
         chosen = {k: getattr(best, k) for k in grid}
         print(f"  {city:12s} chosen {chosen}  train missed {best_key[0]}, false flags {best_key[1]}; "
-              f"held out: {confusion(test, [held_flags[r['name']] for r in test])}")
-    print(f"\nheld-out, all cities: {confusion(runs, [held_flags[r['name']] for r in runs])}")
+              f"held out: {confusion(test, [held_flags[id(r)] for r in test])}")
+    print(f"\nheld-out, all cities: {confusion(runs, [held_flags[id(r)] for r in runs])}")
+    confidence_only(runs, base)
     return 0
 
 

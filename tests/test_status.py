@@ -17,7 +17,7 @@ from plugins.match_loopy_bp import LoopyBP
 from tests.conftest import REPO, synthetic_scene
 from toolkit.matching.solvers_common import vote
 from toolkit.registry import Registry
-from toolkit.status import SCORED, StatusRule, Verdict
+from toolkit.status import HARD_CHECKS, SCORED, StatusRule, Verdict
 
 RECIPE = REPO / "recipes" / "dsm.yaml"
 LEADING_KEYS = ["status", "confidence", "reasons", "assessment"]
@@ -101,6 +101,20 @@ def test_hard_reasons_most_important_first():
 def test_low_confidence_alone_is_unreliable():
     verdict = StatusRule().judge({**GOOD, "matched_share": 0.2, "match_confidence_mean": 0.25})
     assert verdict.status == "unreliable" and verdict.confidence < 0.5
+    assert verdict.reasons[0].startswith("confidence ") and "matched" in verdict.reasons[0]
+
+
+def test_a_run_with_no_hard_reason_but_weak_figures_is_unreliable():
+    # the figures of a real-city run 2.4 m off (helsinki-s-short, label map, GPS σ 5 m every 5th image):
+    # every hard limit holds, a fifth of the segments matched and the façades 0.89 m from the outlines
+    silent = {**GOOD, "registered_share": 0.4, "registered_point_share": 0.7571, "matched_share": 0.2,
+              "match_confidence_mean": 0.3875, "facade_support_share": 0.645, "facade_distance_median_m": 0.8868,
+              "camera_spread_p95_m": 2.9322, "camera_gap_p90_m": 46.3968, "gps_sigma_m": 5.0,
+              "gps_residual_median_m": 8.0551, "bp_iterations": 2}
+    rule = StatusRule()
+    assert not any(check(rule, silent) for check in HARD_CHECKS.values())
+    verdict = rule.judge(silent)
+    assert verdict.status == "unreliable" and verdict.confidence < rule.min_confidence
     assert verdict.reasons[0].startswith("confidence ") and "matched" in verdict.reasons[0]
 
 

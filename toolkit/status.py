@@ -53,7 +53,7 @@ class Ramp:
 
 @dataclass(frozen=True)
 class StatusRule:
-    """Thresholds that map the figures to status, confidence and reasons (provisional: to be calibrated).
+    """Thresholds that map the figures to status, confidence and reasons (chosen in docs/status.md).
 
     Confidence is the product of the per-figure scores (``Ramp``s; an absent figure scores 1).
     A run is unreliable when confidence < ``min_confidence`` or any hard limit below is crossed.
@@ -61,7 +61,7 @@ class StatusRule:
     unreliable where its limit says, and several half-bad figures together do too.
     """
 
-    min_confidence: float = 0.4
+    min_confidence: float = 0.55  # chosen leave-one-city-out (bench/status_calibration.py)
     # hard limits
     min_registered_point_share: float = 0.5
     min_facade_support_share: float = 0.4
