@@ -126,11 +126,43 @@ def slim_run(out: Path) -> str | None:
     return h.hexdigest()
 
 
-def bound_folders(folders: list[Path], keep: int) -> None:
-    """Delete all but the ``keep`` most recently modified of ``folders``, saying so."""
+SLIM_MARK = ".slim"      # a variant folder reduced to its small files (metrics.json, logs, recipe)
+SLIM_FILE_BYTES = 64 * 1024
+
+
+def _slim_age(folder: Path) -> float:
+    mark = folder / SLIM_MARK
+    try:
+        return float(mark.read_text())
+    except ValueError:
+        return mark.stat().st_mtime
+
+
+def bound_folders(folders: list[Path], keep: int, keep_slim: int = 0) -> None:
+    """Keep the ``keep`` most recently modified of ``folders`` whole; of the others, the ``keep_slim``
+    newest keep only their files under 64 KiB (metrics.json, logs, recipe.yaml: what re-scoring the
+    run status needs, bench/status_calibration.py), the rest are deleted, saying so. A slimmed
+    folder's SLIM_MARK file holds its modification time from before it was slimmed."""
     import shutil
 
-    old = sorted((d for d in folders if d.is_dir()), key=lambda d: d.stat().st_mtime, reverse=True)
-    for d in old[keep:]:
-        print(f"removing {d} (bench outputs are kept for the {keep} newest variants)", flush=True)
+    folders = [d for d in folders if d.is_dir()]
+    slim = [d for d in folders if (d / SLIM_MARK).is_file()]
+    whole = sorted((d for d in folders if d not in slim), key=lambda d: d.stat().st_mtime, reverse=True)
+    for d in whole[keep:]:
+        age = d.stat().st_mtime
+        if keep_slim <= 0:
+            print(f"removing {d} (bench outputs are kept for the {keep} newest variants)", flush=True)
+            shutil.rmtree(d)
+            continue
+        print(f"slimming {d} to its small files (the {keep} newest variants stay whole)", flush=True)
+        for f in sorted(d.rglob("*"), reverse=True):  # files before their folders
+            if f.is_file() and f.stat().st_size > SLIM_FILE_BYTES:
+                f.unlink()
+            elif f.is_dir() and not any(f.iterdir()):
+                f.rmdir()
+        (d / SLIM_MARK).write_text(repr(age))
+        slim.append(d)
+    slim.sort(key=_slim_age, reverse=True)
+    for d in slim[keep_slim:] if keep_slim > 0 else slim:
+        print(f"removing {d} (small files are kept for the {keep_slim} newest slimmed variants)", flush=True)
         shutil.rmtree(d)

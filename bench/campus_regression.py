@@ -6,8 +6,8 @@ given by ``--set`` overrides, each run in its own process, and prints per run th
 median, horizontal p95, 3D p95 and 3D mean (m) and the adjusted camera centres' median error, with
 each figure's change. The campus is a regression check, not a tuning set: the issue's bar is that
 no figure gets more than 10 % worse. Each run's registered.ply is deleted once it has run (its
-registered.laz and registered.sha256 stay), and a new tag removes all but the newest
-KEEP_VARIANTS − 1 variant folders besides default.
+registered.laz and registered.sha256 stay), and a new tag keeps the newest KEEP_VARIANTS − 1 variant
+folders besides default whole and older ones with their small files only (metrics.json, logs).
 
 usage: python bench/campus_regression.py [--seeds 0,1,2,3,4] [--recipes dsm,osm,label_map]
        [--set KEY=VALUE ...] [--tag NAME] [--reuse-default]
@@ -25,7 +25,8 @@ from pathlib import Path
 from _common import REPO, bound_folders, slim_run
 
 OUT = REPO / "data" / "campus-out"
-KEEP_VARIANTS = 3  # data/campus-out/<tag> folders kept besides default (each run keeps registered.laz, not the PLY)
+KEEP_VARIANTS = 3  # data/campus-out/<tag> folders kept whole besides default (each run keeps registered.laz, not the PLY)
+KEEP_SLIM = 20     # older <tag> folders kept with their small files only (metrics.json, logs)
 FIGURES = (("h med", ("truth", "horizontal", "median_m")), ("h p95", ("truth", "horizontal", "p95_m")),
            ("3D p95", ("truth", "error_3d", "p95_m")), ("3D mean", ("truth", "error_3d", "mean_m")),
            ("cam med", ("cameras", "centre_error_median_m")))
@@ -74,7 +75,7 @@ def main() -> None:
                     help="take the default runs from data/campus-out/default/ when they are there (same code)")
     args = ap.parse_args()
     if not (OUT / args.tag).exists():  # room for this variant: the default and the newest variants stay
-        bound_folders([d for d in OUT.glob("*") if d.name != "default"], KEEP_VARIANTS - 1)
+        bound_folders([d for d in OUT.glob("*") if d.name != "default"], KEEP_VARIANTS - 1, KEEP_SLIM)
     worst = (0.0, "")
     head = "  ".join(f"{name:>16s}" for name, _ in FIGURES)
     print(f"{'seed recipe':16s} {head}   seconds (default → variant)")

@@ -29,7 +29,9 @@ rigid fit's. Rows go to data/cities/results.json (after each run) under the code
 run with ``--set`` overrides and ``--tag NAME``, whose outputs go to data/cities/out-NAME/; each row also keeps
 a hash of the diff). Disk: each run's registered.ply is deleted once scored (registered.laz holds the same
 points; the row keeps its sha256 as ``registered_sha256``, so variants compare byte for byte after their
-folders are gone), and a new variant removes all but the KEEP_VARIANTS − 1 newest out-* folders.
+folders are gone), and a new variant keeps only the KEEP_VARIANTS − 1 newest out-* folders whole: older
+ones keep their files under 64 KiB (metrics.json, logs; the KEEP_SLIM newest of them), what
+bench/status_calibration.py --all re-scores.
 
 ``--holdout``: the held-out matrix, the same cities and routes with other seeds (+100) and each scene
 given another scene's drift, cached and run under data/cities-holdout/ (its own results.json):
@@ -66,7 +68,8 @@ from _common import REPO, bound_folders, kabsch_error, slim_run
 RAW = Path(__file__).resolve().parents[2] / "shared" / "data" / "raw"
 ROOT = REPO / "data" / "cities"
 OUT = ROOT / "out"
-KEEP_VARIANTS = 4  # data/cities/out-TAG folders kept (the newest); each run keeps registered.laz, not the PLY
+KEEP_VARIANTS = 4  # data/cities/out-TAG folders kept whole (the newest); each run keeps registered.laz, not the PLY
+KEEP_SLIM = 40     # older out-TAG folders kept with their small files only (~1.5 MB each: metrics.json, logs)
 RESULTS = ROOT / "results.json"
 RECIPES = ("dsm", "osm", "label_map")
 
@@ -544,7 +547,7 @@ def main() -> int:
         return row
 
     if args.tag and not (ROOT / f"out-{args.tag}").exists():  # room for this variant's outputs
-        bound_folders(list(ROOT.glob("out-*")), KEEP_VARIANTS - 1)
+        bound_folders(list(ROOT.glob("out-*")), KEEP_VARIANTS - 1, KEEP_SLIM)
     lock = threading.Lock()
     with ThreadPoolExecutor(max(1, args.jobs)) as pool:
         done = {(row["scene"], row["source"]): row for row in pool.map(work, jobs)}

@@ -84,7 +84,11 @@ def profile(root: Path, recipe: str, out: Path, overrides: tuple[str, ...] = ())
     res = run_recipe(REPO / "recipes" / recipe, scene=root, out=out, overwrite=True, rerun=False, observer=obs,
                      overlap=False, overrides=list(overrides))
     seconds, cpu = time.perf_counter() - t0, _cpu() - c0
-    rows = [(step, s, obs.cpu[step], obs.rss_in[step], obs.peak[step]) for step, s in res.timings.items()]
+    # a timing that is not a stage (``scale``: the no-GPS street-scale check) has no CPU or memory
+    # figures of its own; its CPU seconds are counted in the ``outputs`` row
+    nan = float("nan")
+    rows = [(step, s, obs.cpu.get(step, nan), obs.rss_in.get(step, nan), obs.peak.get(step, nan))
+            for step, s in res.timings.items()]
     rows.append(("outputs", seconds - sum(res.timings.values()), cpu - sum(obs.cpu.values()),
                  _status_mb("VmRSS"), _status_mb("VmHWM")))
     return seconds, cpu, rows
@@ -120,7 +124,7 @@ def main(preset: str = "campus", recipe: str = "dsm.yaml", *overrides: str) -> N
     normals = (before + normals_seconds(root)) / 2
     # ru_maxrss only sees the high-water mark since the last reset: the run's peak is the stages' max
     print(f"{recipe} on {name}: {seconds:.1f} s total ({cpu:.1f} s CPU, {seconds / normals:.2f}x one normals pass of "
-          f"{normals:.2f} s), peak RSS {max(r[4] for r in rows):.0f} MB (highest stage peak)")
+          f"{normals:.2f} s), peak RSS {max(r[4] for r in rows if r[4] == r[4]):.0f} MB (highest stage peak)")
     print(f"{'step':10s} {'seconds':>9s} {'share':>7s} {'÷ normals':>10s} {'CPU s':>8s} {'CPU share':>10s} "
           f"{'rss in MB':>10s} {'peak MB':>9s}")
     for step, s, c, rss_in, peak in sorted(rows, key=lambda r: -r[1]):

@@ -1,7 +1,8 @@
 """How well the run status (toolkit/status.py) tells failed runs from good ones, city by city.
 
 Reads the runs of bench/cities.py (``--out-dir``, repeatable: e.g. every replica and the held-out
-matrix; <dir>/*/metrics.json: the truth-free ``assessment`` and the truth figures; a run found twice
+matrix; ``--all``: every output folder of both matrices, also those bench/cities.py slimmed to their
+small files; <dir>/*/metrics.json: the truth-free ``assessment`` and the truth figures; a run found twice
 with the same figures counts once), and prints:
 - the confusion table (flagged × accurate) of the current rule (StatusRule's defaults), and its gross
   failures (horizontal median > 2 m) that were not flagged;
@@ -16,7 +17,7 @@ with the same figures counts once), and prints:
   limit is the rule's catch-all for runs no hard limit names; the full grid above takes minutes on
   several hundred runs, ``--confidence-only`` skips it).
 
-usage: python bench/status_calibration.py [--out-dir data/cities/out ...] [--confidence-only]
+usage: python bench/status_calibration.py [--out-dir data/cities/out ...] [--all] [--confidence-only]
 """
 
 from __future__ import annotations
@@ -133,11 +134,15 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out-dir", type=Path, action="append",
                     help="a bench/cities.py output folder (repeatable; default data/cities/out)")
+    ap.add_argument("--all", action="store_true",
+                    help="every output folder of data/cities and data/cities-holdout (whole or slimmed)")
     ap.add_argument("--confidence-only", action="store_true", help="only the min_confidence choice")
     args = ap.parse_args()
     from toolkit.status import StatusRule
 
-    out_dirs = args.out_dir or [REPO / "data" / "cities" / "out"]
+    everything = sorted((REPO / "data" / "cities").glob("out*/")) + sorted((REPO / "data" / "cities-holdout").glob("out*/"))
+    out_dirs = (args.out_dir or []) + (everything if args.all else [])
+    out_dirs = out_dirs or [REPO / "data" / "cities" / "out"]
     runs = load_all(out_dirs)
     if not runs:
         raise SystemExit(f"{', '.join(map(str, out_dirs))}: no runs with truth and an assessment "
