@@ -3,7 +3,7 @@
 Reads the runs of bench/cities.py (``--out-dir``, repeatable: e.g. every replica and the held-out
 matrix; ``--all``: every output folder of both matrices, also those bench/cities.py slimmed to their
 small files; <dir>/*/metrics.json: the truth-free ``assessment`` and the truth figures; a run found twice
-with the same figures counts once), and prints:
+counts once), and prints:
 - the confusion table (flagged × accurate) of the current rule (StatusRule's defaults), and its gross
   failures (horizontal median > 2 m) that were not flagged;
 - a leave-one-city-out choice of the rule's main hard limits (façade distance and support, registered
@@ -53,18 +53,19 @@ def load_runs(out_dir: Path) -> list[dict]:
         accurate = h <= 0.5 and p95 <= 1.5 and (rigid is None or truth["error_3d"]["mean_m"] < rigid)
         runs.append({"name": name, "city": _city_of(name), "h": h, "accurate": accurate,
                      "gross": h > GROSS_M, "figures": m["assessment"], "rule": m.get("status_rule", {}),
-                     "status": m["status"], "dir": f"{out_dir.parent.name}/{out_dir.name}"})
+                     "status": m["status"], "dir": f"{out_dir.parent.name}/{out_dir.name}",
+                     "same": (out_dir.parent.name, name, h, truth["error_3d"]["mean_m"])})
     return runs
 
 
 def load_all(out_dirs: list[Path]) -> list[dict]:
-    """The runs of several output folders; a run found twice with the same figures counts once."""
+    """The runs of several output folders; a run found twice (the same scene of the same matrix with
+    the same truth errors: the same registration, e.g. a code change that did not touch it) counts once."""
     seen, runs = set(), []
     for out_dir in out_dirs:
         for r in load_runs(out_dir):
-            key = (r["name"], json.dumps(r["figures"], sort_keys=True))
-            if key not in seen:
-                seen.add(key)
+            if r["same"] not in seen:
+                seen.add(r["same"])
                 runs.append(r)
     return runs
 
