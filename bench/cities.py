@@ -41,6 +41,11 @@ scenes on which no default and no status limit was chosen, to check that they ho
 from truth/cameras.txt, every N-th image with a slowly wandering error of S m per axis (the
 generator's model, its own seed), written beside the scene as street/gps-s{S}-e{N}.csv with a
 scene-gps-s{S}-e{N}.yaml manifest; the scene itself is not rebuilt.
+
+``--replicas 3``: the matrix again with the street frame's units × 1.001 and × 0.999 (``--set
+street_scale=…``, tags TAG-s1001 and TAG-s0999, "base-…" without --tag). Such inputs should change
+nothing, yet single runs move by metres: the matrix's own spread, against which
+bench/matrix_floor.py judges a variant's replicas.
 """
 
 from __future__ import annotations
@@ -70,6 +75,9 @@ ROOT = REPO / "data" / "cities"
 OUT = ROOT / "out"
 KEEP_VARIANTS = 4  # data/cities/out-TAG folders kept whole (the newest); each run keeps registered.laz, not the PLY
 KEEP_SLIM = 40     # older out-TAG folders kept with their small files only (~1.5 MB each: metrics.json, logs)
+# --replicas: the same matrix with the street frame's units scaled by these (should change nothing;
+# the spread they show is the matrix's own, bench/matrix_floor.py)
+REPLICA_SCALES = (("s1001", 1.001), ("s0999", 0.999))
 RESULTS = ROOT / "results.json"
 RECIPES = ("dsm", "osm", "label_map")
 
@@ -487,11 +495,16 @@ def main() -> int:
     ap.add_argument("--gps-every", type=int, default=1, help="with --gps-sigma-m: a fix every N images")
     ap.add_argument("--holdout", action="store_true", help="the held-out matrix: other seeds and drifts, under "
                                                            "data/cities-holdout/")
+    ap.add_argument("--replicas", type=int, default=1, choices=(1, 2, 3),
+                    help="also run the matrix with the street frame's units × 1.001 (2) and × 0.999 (3), as "
+                         "tags TAG-s1001, TAG-s0999 (base-… without --tag)")
     args = ap.parse_args()
     if args.gps_sigma_m is not None and not (args.gps and args.tag):
         sys.exit("--gps-sigma-m needs --gps and --tag")
     if args.set and not args.tag:
         sys.exit("--set needs --tag (a variant must not overwrite the default runs)")
+    if args.replicas > 1 and any(o.split("=", 1)[0].strip() == "street_scale" for o in args.set):
+        sys.exit("--replicas sets street_scale itself: drop --set street_scale=…")
     if not RAW.is_dir():
         sys.exit(f"{RAW}: real city data not present (the 'shared' folder beside the repo); nothing to run")
     missing = sorted({str(c.path) for c in CITIES.values() if not c.path.is_file()})
@@ -527,18 +540,34 @@ def main() -> int:
     manifests = {s.name: gps_variant(s, args.gps_sigma_m, args.gps_every) for s in chosen} \
         if args.gps_sigma_m is not None else {}
 
+    replicas = [(args.tag, list(args.set))] + [
+        (f"{args.tag or 'base'}-{name}", list(args.set) + [f"street_scale={value}"])
+        for name, value in REPLICA_SCALES[:args.replicas - 1]]
+    keys = [run_matrix(chosen, recipes, stamps, manifests, args.gps, args.jobs, tag, overrides)
+            for tag, overrides in replicas]
+    if args.replicas > 1:
+        print(f"replicas: {' '.join(keys)} (bench/matrix_floor.py --base {' '.join(keys)}, or --variant … "
+              "against a base's replicas)")
+    return 0
+
+
+def run_matrix(chosen: list[Scene], recipes: list[str], stamps: dict, manifests: dict, gps: bool, jobs: int,
+               tag: str, overrides: list[str]) -> str:
+    """Every recipe on every chosen scene (``jobs`` side by side), rows saved as they finish and
+    printed; the results.json key they were saved under."""
     # short loops first: a run cut short still has every city once
-    jobs = [(s, r) for route in ("short", "long") for s in chosen if s.route == route for r in recipes]
-    print(f"\n{len(jobs)} runs ({'with' if args.gps else 'without'} GPS, {args.jobs} at a time)", flush=True)
+    runs = [(s, r) for route in ("short", "long") for s in chosen if s.route == route for r in recipes]
+    print(f"\n{len(runs)} runs ({'with' if gps else 'without'} GPS, {jobs} at a time"
+          f"{', ' + ' '.join(overrides) if overrides else ''})", flush=True)
 
     def work(job):
         s, r = job
         with lock:
             state = code_state()  # what the run's process loads (others may commit meanwhile)
-            if args.tag:
-                state = (f"{state[0]}+{args.tag}", state[1])
-        run = run_one(s, r, args.gps, tuple(args.set), args.tag, manifests.get(s.name))
-        row = row_of(s, stamps[s.name], r, args.gps, run)
+            if tag:
+                state = (f"{state[0]}+{tag}", state[1])
+        run = run_one(s, r, gps, tuple(overrides), tag, manifests.get(s.name))
+        row = row_of(s, stamps[s.name], r, gps, run)
         with lock:
             save([row], state)  # as it goes: an interrupted matrix keeps the runs it finished
             print(f"  {s.name} {r}: exit {run['exit']}, {run['seconds']:.0f} s, h med "
@@ -546,17 +575,17 @@ def main() -> int:
                   + (f" ({row['error']})" if row["error"] else ""), flush=True)
         return row
 
-    if args.tag and not (ROOT / f"out-{args.tag}").exists():  # room for this variant's outputs
+    if tag and not (ROOT / f"out-{tag}").exists():  # room for this variant's outputs
         bound_folders(list(ROOT.glob("out-*")), KEEP_VARIANTS - 1, KEEP_SLIM)
     lock = threading.Lock()
-    with ThreadPoolExecutor(max(1, args.jobs)) as pool:
-        done = {(row["scene"], row["source"]): row for row in pool.map(work, jobs)}
+    with ThreadPoolExecutor(max(1, jobs)) as pool:
+        done = {(row["scene"], row["source"]): row for row in pool.map(work, runs)}
     rows = [done[(s.name, r)] for s in chosen for r in recipes]
     print()
     print_table(rows)
     keys = sorted({r["code_state"] for r in rows})
     print(f"rows written to {RESULTS.relative_to(REPO)} under {', '.join(map(repr, keys))}")
-    return 0
+    return keys[-1]
 
 
 if __name__ == "__main__":
