@@ -126,8 +126,8 @@ def slim_run(out: Path) -> str | None:
     return h.hexdigest()
 
 
-SLIM_MARK = ".slim"      # a variant folder reduced to its small files (metrics.json, logs, recipe)
-SLIM_FILE_BYTES = 64 * 1024
+SLIM_MARK = ".slim"      # a variant folder reduced to its metrics and logs
+SLIM_KEEP = (".json", ".log", ".yaml")   # metrics.json, timings.json, transforms.json, run.log, recipe.yaml
 
 
 def _slim_age(folder: Path) -> float:
@@ -140,9 +140,9 @@ def _slim_age(folder: Path) -> float:
 
 def bound_folders(folders: list[Path], keep: int, keep_slim: int = 0) -> None:
     """Keep the ``keep`` most recently modified of ``folders`` whole; of the others, the ``keep_slim``
-    newest keep only their files under 64 KiB (metrics.json, logs, recipe.yaml: what re-scoring the
-    run status needs, bench/status_calibration.py), the rest are deleted, saying so. A slimmed
-    folder's SLIM_MARK file holds its modification time from before it was slimmed."""
+    newest keep only their JSON, log and YAML files (metrics.json, run.log, recipe.yaml: what re-scoring
+    the run status needs, bench/status_calibration.py; a few MB a matrix), the rest are deleted,
+    saying so. A slimmed folder's SLIM_MARK file holds its modification time from before it was slimmed."""
     import shutil
 
     folders = [d for d in folders if d.is_dir()]
@@ -154,9 +154,9 @@ def bound_folders(folders: list[Path], keep: int, keep_slim: int = 0) -> None:
             print(f"removing {d} (bench outputs are kept for the {keep} newest variants)", flush=True)
             shutil.rmtree(d)
             continue
-        print(f"slimming {d} to its small files (the {keep} newest variants stay whole)", flush=True)
+        print(f"slimming {d} to its metrics and logs (the {keep} newest variants stay whole)", flush=True)
         for f in sorted(d.rglob("*"), reverse=True):  # files before their folders
-            if f.is_file() and f.stat().st_size > SLIM_FILE_BYTES:
+            if f.is_file() and f.suffix not in SLIM_KEEP and f.name != SLIM_MARK:
                 f.unlink()
             elif f.is_dir() and not any(f.iterdir()):
                 f.rmdir()
@@ -164,5 +164,5 @@ def bound_folders(folders: list[Path], keep: int, keep_slim: int = 0) -> None:
         slim.append(d)
     slim.sort(key=_slim_age, reverse=True)
     for d in slim[keep_slim:] if keep_slim > 0 else slim:
-        print(f"removing {d} (small files are kept for the {keep_slim} newest slimmed variants)", flush=True)
+        print(f"removing {d} (metrics and logs are kept for the {keep_slim} newest slimmed variants)", flush=True)
         shutil.rmtree(d)

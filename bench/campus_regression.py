@@ -7,7 +7,7 @@ median, horizontal p95, 3D p95 and 3D mean (m) and the adjusted camera centres' 
 each figure's change. The campus is a regression check, not a tuning set: the issue's bar is that
 no figure gets more than 10 % worse. Each run's registered.ply is deleted once it has run (its
 registered.laz and registered.sha256 stay), and a new tag keeps the newest KEEP_VARIANTS − 1 variant
-folders besides default whole and older ones with their small files only (metrics.json, logs).
+folders besides default whole and older ones with their metrics and logs only (JSON, log and YAML files).
 
 usage: python bench/campus_regression.py [--seeds 0,1,2,3,4] [--recipes dsm,osm,label_map]
        [--set KEY=VALUE ...] [--tag NAME] [--reuse-default]
@@ -26,7 +26,7 @@ from _common import REPO, bound_folders, slim_run
 
 OUT = REPO / "data" / "campus-out"
 KEEP_VARIANTS = 3  # data/campus-out/<tag> folders kept whole besides default (each run keeps registered.laz, not the PLY)
-KEEP_SLIM = 20     # older <tag> folders kept with their small files only (metrics.json, logs)
+KEEP_SLIM = 20     # older <tag> folders kept with their metrics and logs only
 FIGURES = (("h med", ("truth", "horizontal", "median_m")), ("h p95", ("truth", "horizontal", "p95_m")),
            ("3D p95", ("truth", "error_3d", "p95_m")), ("3D mean", ("truth", "error_3d", "mean_m")),
            ("cam med", ("cameras", "centre_error_median_m")))

@@ -30,7 +30,7 @@ run with ``--set`` overrides and ``--tag NAME``, whose outputs go to data/cities
 a hash of the diff). Disk: each run's registered.ply is deleted once scored (registered.laz holds the same
 points; the row keeps its sha256 as ``registered_sha256``, so variants compare byte for byte after their
 folders are gone), and a new variant keeps only the KEEP_VARIANTS − 1 newest out-* folders whole: older
-ones keep their files under 64 KiB (metrics.json, logs; the KEEP_SLIM newest of them), what
+ones keep their metrics and logs (JSON, log and YAML files; the KEEP_SLIM newest of them), what
 bench/status_calibration.py --all re-scores.
 
 ``--holdout``: the held-out matrix, the same cities and routes with other seeds (+100) and each scene
@@ -74,7 +74,7 @@ RAW = Path(__file__).resolve().parents[2] / "shared" / "data" / "raw"
 ROOT = REPO / "data" / "cities"
 OUT = ROOT / "out"
 KEEP_VARIANTS = 4  # data/cities/out-TAG folders kept whole (the newest); each run keeps registered.laz, not the PLY
-KEEP_SLIM = 40     # older out-TAG folders kept with their small files only (~1.5 MB each: metrics.json, logs)
+KEEP_SLIM = 40     # older out-TAG folders kept with their metrics and logs only (~3 MB each)
 # --replicas: the same matrix with the street frame's units scaled by these (should change nothing;
 # the spread they show is the matrix's own, bench/matrix_floor.py)
 REPLICA_SCALES = (("s1001", 1.001), ("s0999", 0.999))

@@ -2,7 +2,7 @@
 
 Reads the runs of bench/cities.py (``--out-dir``, repeatable: e.g. every replica and the held-out
 matrix; ``--all``: every output folder of both matrices, also those bench/cities.py slimmed to their
-small files; <dir>/*/metrics.json: the truth-free ``assessment`` and the truth figures; a run found twice
+metrics and logs; <dir>/*/metrics.json: the truth-free ``assessment`` and the truth figures; a run found twice
 counts once), and prints:
 - the confusion table (flagged × accurate) of the current rule (StatusRule's defaults), and its gross
   failures (horizontal median > 2 m) that were not flagged;
@@ -52,8 +52,7 @@ def load_runs(out_dir: Path) -> list[dict]:
         rigid = stamp.get("rigid_mean_m")
         accurate = h <= 0.5 and p95 <= 1.5 and (rigid is None or truth["error_3d"]["mean_m"] < rigid)
         runs.append({"name": name, "city": _city_of(name), "h": h, "accurate": accurate,
-                     "gross": h > GROSS_M, "figures": m["assessment"], "rule": m.get("status_rule", {}),
-                     "status": m["status"], "dir": f"{out_dir.parent.name}/{out_dir.name}",
+                     "gross": h > GROSS_M, "figures": m["assessment"], "status": m["status"], "dir": f"{out_dir.parent.name}/{out_dir.name}",
                      "same": (out_dir.parent.name, name, h, truth["error_3d"]["mean_m"])})
     return runs
 
@@ -113,7 +112,8 @@ def confidence_only(runs: list[dict], base) -> None:
     grid = [round(v, 2) for v in np.arange(0.3, 0.801, 0.05)]
     cities = sorted({r["city"] for r in runs})
     held: dict[int, bool] = {}
-    print(f"\nmin_confidence alone, leave one city out (grid {grid[0]}-{grid[-1]}; the other limits at their defaults):")
+    print(f"\nmin_confidence alone, leave one city out (grid {grid[0]}-{grid[-1]}; "
+          "the other limits at their defaults):")
     for city in cities:
         value, key = choose_confidence([r for r in runs if r["city"] != city], base, grid)
         rule = dataclasses.replace(base, min_confidence=value)
@@ -121,10 +121,14 @@ def confidence_only(runs: list[dict], base) -> None:
         for r in test:
             held[id(r)] = rule.judge(r["figures"]).status != "ok"
         print(f"  {city:12s} chosen {value:.2f}  train missed {key[0]}, false flags {key[1]}, inaccurate flagged "
-              f"{-key[2]} (equally good {key[3][0]:.2f}-{key[3][1]:.2f}); held out: {confusion(test, [held[id(r)] for r in test])}")
+              f"{-key[2]} (equally good {key[3][0]:.2f}-{key[3][1]:.2f}); "
+              f"held out: {confusion(test, [held[id(r)] for r in test])}")
     print(f"held-out, all cities: {confusion(runs, [held[id(r)] for r in runs])}")
     value, key = choose_confidence(runs, base, grid)
-    print(f"chosen on all cities: {value:.2f}, equally good {key[3][0]:.2f}-{key[3][1]:.2f} ({confusion(runs, [dataclasses.replace(base, min_confidence=value).judge(r['figures']).status != 'ok' for r in runs])})")
+    rule = dataclasses.replace(base, min_confidence=value)
+    flagged = [rule.judge(r["figures"]).status != "ok" for r in runs]
+    print(f"chosen on all cities: {value:.2f}, equally good {key[3][0]:.2f}-{key[3][1]:.2f} "
+          f"({confusion(runs, flagged)})")
     for r in runs:
         if held[id(r)] and r["accurate"]:
             print(f"  held-out flagged accurate run: {r['dir']}/{r['name']} (confidence "
@@ -141,7 +145,7 @@ def main() -> int:
     args = ap.parse_args()
     from toolkit.status import StatusRule
 
-    everything = sorted((REPO / "data" / "cities").glob("out*/")) + sorted((REPO / "data" / "cities-holdout").glob("out*/"))
+    everything = [d for matrix in ("cities", "cities-holdout") for d in sorted((REPO / "data" / matrix).glob("out*/"))]
     out_dirs = (args.out_dir or []) + (everything if args.all else [])
     out_dirs = out_dirs or [REPO / "data" / "cities" / "out"]
     runs = load_all(out_dirs)

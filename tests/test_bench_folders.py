@@ -18,7 +18,7 @@ def _common():
 def _variant(root: Path, name: str, age_s: int) -> Path:
     d = root / f"out-{name}"
     (d / "run-a" / "sparse").mkdir(parents=True)
-    (d / "run-a" / "metrics.json").write_text('{"status": "ok"}')
+    (d / "run-a" / "metrics.json").write_text('{"status": "ok", "notes": "%s"}' % ("x" * 100_000))  # a long loop's
     (d / "run-a" / "registered.laz").write_bytes(b"\0" * (100 * 1024))
     (d / "run-a" / "sparse" / "points3D.bin").write_bytes(b"\0" * (100 * 1024))
     (d / "run-a.log").write_text("crossview run ...")
@@ -33,7 +33,7 @@ def test_older_variants_keep_their_small_files_then_go(tmp_path):
     common.bound_folders(folders, keep=2, keep_slim=2)
     for d in folders[:2]:  # the newest stay whole
         assert (d / "run-a" / "registered.laz").is_file() and not (d / common.SLIM_MARK).exists()
-    for d in folders[2:4]:  # the next two keep metrics.json and logs, nothing large, no empty folder
+    for d in folders[2:4]:  # the next two keep metrics.json (however long) and logs, no points, no empty folder
         assert (d / common.SLIM_MARK).is_file()
         assert (d / "run-a" / "metrics.json").is_file() and (d / "run-a.log").is_file()
         assert not (d / "run-a" / "registered.laz").exists() and not (d / "run-a" / "sparse").exists()
