@@ -138,6 +138,17 @@ def _slim_age(folder: Path) -> float:
         return mark.stat().st_mtime
 
 
+def _slim(folder: Path) -> None:
+    """Delete all but the folder's JSON, log and YAML files (and empty sub-folders); mark it slimmed."""
+    age = folder.stat().st_mtime
+    for f in sorted(folder.rglob("*"), reverse=True):  # files before their folders
+        if f.is_file() and f.suffix not in SLIM_KEEP:
+            f.unlink()
+        elif f.is_dir() and not any(f.iterdir()):
+            f.rmdir()
+    (folder / SLIM_MARK).write_text(repr(age))
+
+
 def bound_folders(folders: list[Path], keep: int, keep_slim: int = 0) -> None:
     """Keep the ``keep`` most recently modified of ``folders`` whole; of the others, the ``keep_slim``
     newest keep only their JSON, log and YAML files (metrics.json, run.log, recipe.yaml: what re-scoring
@@ -149,20 +160,13 @@ def bound_folders(folders: list[Path], keep: int, keep_slim: int = 0) -> None:
     slim = [d for d in folders if (d / SLIM_MARK).is_file()]
     whole = sorted((d for d in folders if d not in slim), key=lambda d: d.stat().st_mtime, reverse=True)
     for d in whole[keep:]:
-        age = d.stat().st_mtime
-        if keep_slim <= 0:
+        if keep_slim > 0:
+            print(f"slimming {d} to its metrics and logs (the {keep} newest variants stay whole)", flush=True)
+            _slim(d)
+            slim.append(d)
+        else:
             print(f"removing {d} (bench outputs are kept for the {keep} newest variants)", flush=True)
             shutil.rmtree(d)
-            continue
-        print(f"slimming {d} to its metrics and logs (the {keep} newest variants stay whole)", flush=True)
-        for f in sorted(d.rglob("*"), reverse=True):  # files before their folders
-            if f.is_file() and f.suffix not in SLIM_KEEP and f.name != SLIM_MARK:
-                f.unlink()
-            elif f.is_dir() and not any(f.iterdir()):
-                f.rmdir()
-        (d / SLIM_MARK).write_text(repr(age))
-        slim.append(d)
-    slim.sort(key=_slim_age, reverse=True)
-    for d in slim[keep_slim:] if keep_slim > 0 else slim:
+    for d in sorted(slim, key=_slim_age, reverse=True)[keep_slim:]:
         print(f"removing {d} (metrics and logs are kept for the {keep_slim} newest slimmed variants)", flush=True)
         shutil.rmtree(d)

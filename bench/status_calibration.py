@@ -90,17 +90,25 @@ def confusion(runs: list[dict], flagged: list[bool]) -> str:
             f"gross failures {int(g.sum())}, unflagged {int((g & ~f).sum())}")
 
 
+def flags(rule, runs: list[dict]) -> list[bool]:
+    """Whether ``rule`` judges each run unreliable."""
+    return [rule.judge(r["figures"]).status != "ok" for r in runs]
+
+
+def tally(runs: list[dict], flagged: list[bool]) -> tuple[int, int, int]:
+    """(gross failures not flagged, accurate runs flagged, inaccurate runs flagged)."""
+    return (sum(r["gross"] and not f for r, f in zip(runs, flagged)),
+            sum(r["accurate"] and f for r, f in zip(runs, flagged)),
+            sum(not r["accurate"] and f for r, f in zip(runs, flagged)))
+
+
 def choose_confidence(runs: list[dict], base, grid: list[float]) -> tuple[float, tuple]:
     """``min_confidence`` on ``runs``: no gross failure missed, fewest accurate runs flagged, most
     inaccurate runs flagged; among the values that do equally well, the middle one (farthest from
     the runs that decided the range)."""
     keys = []
     for value in grid:
-        rule = dataclasses.replace(base, min_confidence=value)
-        f = [rule.judge(r["figures"]).status != "ok" for r in runs]
-        missed = sum(r["gross"] and not x for r, x in zip(runs, f))
-        false = sum(r["accurate"] and x for r, x in zip(runs, f))
-        caught = sum(not r["accurate"] and x for r, x in zip(runs, f))
+        missed, false, caught = tally(runs, flags(dataclasses.replace(base, min_confidence=value), runs))
         keys.append((missed, false, -caught))
     best = min(keys)
     equal = [v for v, k in zip(grid, keys) if k == best]
@@ -116,19 +124,15 @@ def confidence_only(runs: list[dict], base) -> None:
           "the other limits at their defaults):")
     for city in cities:
         value, key = choose_confidence([r for r in runs if r["city"] != city], base, grid)
-        rule = dataclasses.replace(base, min_confidence=value)
         test = [r for r in runs if r["city"] == city]
-        for r in test:
-            held[id(r)] = rule.judge(r["figures"]).status != "ok"
+        held.update(zip(map(id, test), flags(dataclasses.replace(base, min_confidence=value), test)))
         print(f"  {city:12s} chosen {value:.2f}  train missed {key[0]}, false flags {key[1]}, inaccurate flagged "
               f"{-key[2]} (equally good {key[3][0]:.2f}-{key[3][1]:.2f}); "
               f"held out: {confusion(test, [held[id(r)] for r in test])}")
     print(f"held-out, all cities: {confusion(runs, [held[id(r)] for r in runs])}")
     value, key = choose_confidence(runs, base, grid)
-    rule = dataclasses.replace(base, min_confidence=value)
-    flagged = [rule.judge(r["figures"]).status != "ok" for r in runs]
     print(f"chosen on all cities: {value:.2f}, equally good {key[3][0]:.2f}-{key[3][1]:.2f} "
-          f"({confusion(runs, flagged)})")
+          f"({confusion(runs, flags(dataclasses.replace(base, min_confidence=value), runs))})")
     for r in runs:
         if held[id(r)] and r["accurate"]:
             print(f"  held-out flagged accurate run: {r['dir']}/{r['name']} (confidence "
@@ -153,7 +157,7 @@ def main() -> int:
         raise SystemExit(f"{', '.join(map(str, out_dirs))}: no runs with truth and an assessment "
                          "(run bench/cities.py first)")
     base = StatusRule()  # the current defaults (runs of older states were judged with their own rule)
-    flagged = [base.judge(r["figures"]).status != "ok" for r in runs]
+    flagged = flags(base, runs)
     print(f"{len(runs)} runs; the current rule: {confusion(runs, flagged)}")
     for r, f in zip(runs, flagged):
         if r["gross"] and not f:
@@ -178,17 +182,14 @@ def main() -> int:
         best, best_key = None, None
         for values in itertools.product(*grid.values()):
             rule = dataclasses.replace(base, **dict(zip(grid, values)))
-            f = [rule.judge(r["figures"]).status != "ok" for r in train]
-            missed = sum(r["gross"] and not x for r, x in zip(train, f))
-            false = sum(r["accurate"] and x for r, x in zip(train, f))
+            missed, false, _ = tally(train, flags(rule, train))
             # then the middle of the grid among equals: limits away from the runs that decided them
             spread = sum(abs(v - np.median(g)) for v, g in zip(values, grid.values()))
             key = (missed, false, spread)
             if best_key is None or key < best_key:
                 best, best_key = rule, key
         test = [r for r in runs if r["city"] == city]
-        for r in test:
-            held_flags[id(r)] = best.judge(r["figures"]).status != "ok"
+        held_flags.update(zip(map(id, test), flags(best, test)))
         chosen = {k: getattr(best, k) for k in grid}
         print(f"  {city:12s} chosen {chosen}  train missed {best_key[0]}, false flags {best_key[1]}; "
               f"held out: {confusion(test, [held_flags[id(r)] for r in test])}")
