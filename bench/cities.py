@@ -35,7 +35,9 @@ bench/status_calibration.py --all re-scores.
 
 ``--holdout``: the held-out matrix, the same cities and routes with other seeds (+100) and each scene
 given another scene's drift, cached and run under data/cities-holdout/ (its own results.json):
-scenes on which no default and no status limit was chosen, to check that they hold.
+scenes on which no default was chosen, to check that they hold. ``--holdout 2``: a second one (seeds
++200, other drifts; data/cities-holdout2/), for a check of choices made on the first (the run
+status's ``min_confidence`` was chosen on runs of both data/cities and data/cities-holdout).
 
 ``--gps-sigma-m S --gps-every N`` (with --gps, needs --tag): the runs use fixes made for the bench
 from truth/cameras.txt, every N-th image with a slowly wandering error of S m per axis (the
@@ -156,9 +158,9 @@ class Scene:
                 f"tilt<={k['max_tilt_deg']:g}, scale {100 * k['scale_drift']:+g}%")
 
 
-# --holdout: the same cities and routes with other seeds (+HOLDOUT_SEED) and each scene given the
-# drift of the scene HOLDOUT_SHIFT rows further down MATRIX: scenes no default was chosen on
-HOLDOUT_SEED, HOLDOUT_SHIFT = 100, 5
+# --holdout N: the same cities and routes with other seeds (+N·HOLDOUT_SEED) and each scene given the
+# drift of the scene HOLDOUT_SHIFTS[N] rows further down MATRIX: scenes no default was chosen on
+HOLDOUT_SEED, HOLDOUT_SHIFTS = 100, {1: 5, 2: 7}
 
 
 def use_root(root: Path) -> None:
@@ -167,9 +169,9 @@ def use_root(root: Path) -> None:
     ROOT, OUT, RESULTS = root, root / "out", root / "results.json"
 
 
-def holdout_matrix() -> list[tuple]:
+def holdout_matrix(n: int = 1) -> list[tuple]:
     drift = [row[3:] for row in MATRIX]
-    return [(city, route, seed + HOLDOUT_SEED, *drift[(k + HOLDOUT_SHIFT) % len(MATRIX)])
+    return [(city, route, seed + n * HOLDOUT_SEED, *drift[(k + HOLDOUT_SHIFTS[n]) % len(MATRIX)])
             for k, (city, route, seed, *_) in enumerate(MATRIX)]
 
 
@@ -493,8 +495,9 @@ def main() -> int:
                                               "the code state + TAG")
     ap.add_argument("--gps-sigma-m", type=float, help="with --gps: bench-made fixes of this error (m; needs --tag)")
     ap.add_argument("--gps-every", type=int, default=1, help="with --gps-sigma-m: a fix every N images")
-    ap.add_argument("--holdout", action="store_true", help="the held-out matrix: other seeds and drifts, under "
-                                                           "data/cities-holdout/")
+    ap.add_argument("--holdout", type=int, nargs="?", const=1, default=0, choices=(1, 2),
+                    help="a held-out matrix: other seeds and drifts, under data/cities-holdout/ (2: a second one, "
+                         "under data/cities-holdout2/)")
     ap.add_argument("--replicas", type=int, default=1, choices=(1, 2, 3),
                     help="also run the matrix with the street frame's units × 1.001 (2) and × 0.999 (3), as "
                          "tags TAG-s1001, TAG-s0999 (base-… without --tag)")
@@ -515,8 +518,8 @@ def main() -> int:
     if bad:
         sys.exit(f"unknown recipe(s): {', '.join(bad)}")
     if args.holdout:
-        use_root(REPO / "data" / "cities-holdout")
-    every = scenes(holdout_matrix() if args.holdout else None)
+        use_root(REPO / "data" / ("cities-holdout" if args.holdout == 1 else f"cities-holdout{args.holdout}"))
+    every = scenes(holdout_matrix(args.holdout) if args.holdout else None)
     chosen = [s for s in every if not args.only or args.only in s.name]
     if not chosen:
         sys.exit(f"--only {args.only!r}: no scene matches ({', '.join(s.name for s in every)})")
