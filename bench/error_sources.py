@@ -8,8 +8,8 @@ truth/cameras.txt), every street point falls in one class:
   matched-bad   valid transform, segment median > 1 m (a wrong match or a poor refinement);
   unregistered  a street segment without a valid transform (moved by the blended neighbours);
   background    no street segment (ground, vegetation; moved by the blend).
-The street labels are recomputed by the run's own street step (recipe.yaml), ~10-30 s a scene;
-and, for the blended classes, the route distance to the nearest registered segment (route
+The street labels are recomputed by the run's own street step (recipe.yaml), ~10-30 s a scene. The
+blended classes are also split by the route distance to the nearest registered segment (route
 position = arc length of the truth camera track at the camera nearest to the point's true XY).
 Printed per run: each class's point share, horizontal median / p95, and its share of the points
 over 1.5 m (what makes the p95 miss the bar); the background points by route gap; and the points
@@ -59,10 +59,9 @@ def street_step(out: Path, scene: Path):
     from toolkit.observe import NullObserver
     from toolkit.recipe import load_recipe
     from toolkit.runner import build
-
-    plan = build(load_recipe(out / "recipe.yaml"), scene)
     from toolkit.scene import load_points
 
+    plan = build(load_recipe(out / "recipe.yaml"), scene)
     spec, stage = next((sp, st) for sp, st in plan.stages if sp.name == "street")
     return stage(plan.scene, plan.capture, NullObserver()), load_points(plan.scene)
 
@@ -102,8 +101,8 @@ def classify(out: Path, scene: Path) -> dict:
     reg_s = np.sort(s[in_valid]) if in_valid.any() else np.array([np.inf])
     k = np.clip(np.searchsorted(reg_s, s), 1, len(reg_s) - 1) if len(reg_s) > 1 else np.zeros(len(s), int)
     gap = np.minimum(np.abs(s - reg_s[k]), np.abs(s - reg_s[np.maximum(k - 1, 0)]))
-    return {"h": h, "cls": cls, "gap": gap, "own": own_transform_errors(street, points, truth, segments), "n_bad_segments": int(sum(m > BAD_SEGMENT_M for m in seg_median.values())),
-            "n_valid": len(valid)}
+    return {"h": h, "cls": cls, "gap": gap, "own": own_transform_errors(street, points, truth, segments),
+            "n_bad_segments": int(sum(m > BAD_SEGMENT_M for m in seg_median.values())), "n_valid": len(valid)}
 
 
 def report(out: Path, r: dict) -> None:
