@@ -128,7 +128,8 @@ class DistanceMap(Stage):
         else:
             anchors = outline_anchors(overview, geo.origin, geo.A_inv, geo.px0, p.anchor.spacing_m)
             coarse = PS.anchor_search(score, geo, cand, samples, anchors, levels.offset_steps[0], stats,
-                                      anchor=p.anchor, pose=p.pose, angle_deg=p.gps.angle_deg)
+                                      anchor=p.anchor, pose=p.pose, angle_deg=p.gps.angle_deg,
+                                      prior_term=DT.prior_term(cand, geo, prior, p.gps))
         # 5. the best of each edge refined level by level, the others re-scored on the exact map
         final = PS.refine_best(score, coarse, samples, levels, p.pose, stats)
         stats["atlas_mb"] = round(atlas.nbytes / 2**20, 1)

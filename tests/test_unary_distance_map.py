@@ -416,3 +416,42 @@ def test_the_prefetched_atlas_is_handed_off_and_gives_the_same_costs(toy, solved
         np.testing.assert_array_equal(a, b)
     with pytest.raises(RuntimeError, match="already taken"):
         handoff.take()
+
+
+def _corner_of_a_block():
+    """One 200 m × 100 m block and two façades around its south-west corner, 60-90 m from its centre
+    (a perimeter block of a real city is one over-view segment), in a street frame turned by 0.4 rad."""
+    grid = Grid((0.5, 0.0, 500_000.0, 0.0, -0.5, 4_400_200.0), 500, 400, "EPSG:32617")
+    label = np.full((400, 500), -1, np.int32)
+    label[100:300, 50:450] = 0                       # x 500 025-500 225, y 4 400 050-4 400 150
+    overview = overview_from_labels(label, grid)
+    rng = np.random.default_rng(2)
+    south = np.column_stack([rng.uniform(500_027, 500_050, 300), np.full(300, 4_400_050.0)])
+    west = np.column_stack([np.full(200, 500_025.0), rng.uniform(4_400_052, 4_400_068, 200)])
+    theta, t = 0.4, np.array([500_100.0, 4_400_100.0])
+    walls = [w + rng.normal(0, 0.05, w.shape) for w in (south, west)]
+    street = street_from_boundaries([(w - t) @ _rot(theta) for w in walls])  # x = R⁻¹(w - t)
+    graphs = KnnGraph()(street, overview, NullObserver())
+    true_centres = np.array([w.mean(axis=0) for w in walls])
+    return graphs, street, overview, theta, t, true_centres
+
+
+def test_a_prior_reaches_facades_far_from_a_large_blocks_centre(monkeypatch):
+    """With a prior (GPS or the route placement) the anchored poses are searched within the prior
+    radius of where it puts the façades, not within the 20 m offset cap about the block's centre
+    (where a façade of a 200 m block never is): the same-segment label is found at the true pose."""
+    from toolkit.matching import data_term as DT
+    from toolkit.matching.gps import GpsPrior, PruningPrior
+
+    graphs, street, overview, theta, t, true_centres = _corner_of_a_block()
+    off_centre = np.linalg.norm(true_centres - np.asarray(overview.centroids)[0], axis=1)
+    params = DistanceMap.Params()
+    assert off_centre.min() > params.pose.offset_cap_m + 20, "precondition: beyond the cap plus the radius"
+    prior = GpsPrior(position=true_centres + np.array([3.0, -2.0]), angle=np.full(2, theta + 0.05), n_fixes=10,
+                     sigma_m=3.0)
+    monkeypatch.setattr(DT, "choose_prior", lambda *a, **k: PruningPrior(prior, np.full(2, 20.0), "gps"))
+    costs = DistanceMap(params)(graphs, street, overview, None, None, NullObserver())
+    assert graphs.n_nodes == 1 and np.isfinite(costs.cost[0, 0]) and costs.cost[0, 0] < 0.2
+    th, tt = costs.theta_rad[0, 0], costs.t[0, 0]
+    placed = np.asarray(street.centroids) @ _rot(th).T + tt
+    assert np.linalg.norm(placed - true_centres, axis=1).max() < 1.0

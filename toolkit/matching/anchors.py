@@ -179,11 +179,13 @@ def _angle_ranges(anchors: Anchors, seg: np.ndarray, centre: np.ndarray, half: n
 
 def hypotheses(atlas: CropAtlas, A: np.ndarray, px0: np.ndarray, anchors: Anchors, pairs: Pairs,
                s_anchor: np.ndarray, s_dir: np.ndarray, usable: np.ndarray, edges: np.ndarray,
-               s_mid: np.ndarray, o_mid: np.ndarray, rot_window: np.ndarray, tol_px: float,
+               s_mid: np.ndarray, o_mid: np.ndarray, reach_m: np.ndarray, rot_window: np.ndarray, tol_px: float,
                max_per_pair: int, theta_prior: np.ndarray | None = None,
-               prior_window: float = np.pi) -> tuple[np.ndarray, Pairs]:
-    """Anchored hypotheses of ``pairs`` (whose ``theta`` is the centre-line angle θ0, ``window_px``
-    the offset window, and ``rot_window`` (P,) the allowed |θ - θ0|).
+               prior_window: float = np.pi, prior_mid: np.ndarray | None = None,
+               prior_radius_m: np.ndarray | None = None) -> tuple[np.ndarray, Pairs]:
+    """Anchored hypotheses of ``pairs`` (whose ``theta`` is the centre-line angle θ0), each putting the
+    street-edge midpoint within ``reach_m`` (P,) of ``o_mid`` (P,2, local metres) and, when given,
+    within ``prior_radius_m`` of ``prior_mid``, turned by at most ``rot_window`` (P,) from θ0.
 
     theta_prior (P,): an absolute heading per pair (NaN: none, e.g. from GPS); hypotheses turned
     farther than ``prior_window`` from it are dropped before the best ``max_per_pair`` are kept.
@@ -192,7 +194,6 @@ def hypotheses(atlas: CropAtlas, A: np.ndarray, px0: np.ndarray, anchors: Anchor
     (theta, pivot_px at the street-edge midpoint, zero offset)."""
     buf = atlas.level(1 if 1 in atlas.erosion_px else 0)
     tol = min(tol_px / atlas.truncate_px, 1.0) * SCALE
-    px_per_m = abs(np.linalg.det(A)) ** 0.5
     s_ang = np.mod(np.arctan2(s_dir[:, 1], s_dir[:, 0]), np.pi)
     out_pair, out_theta, out_pivot, out_rank = [], [], [], []
     for side in (0, 1):
@@ -202,7 +203,7 @@ def hypotheses(atlas: CropAtlas, A: np.ndarray, px0: np.ndarray, anchors: Anchor
         # per-pair quantities, gathered once per item below through ``own`` (index into pid)
         v_mid = s_mid[pairs.edge[pid]] - s_anchor[a_seg[pid]]
         v_b = s_anchor[b_seg[pid]] - s_anchor[a_seg[pid]]
-        o_mid_p, win_p, rotw_p = o_mid[pid], pairs.window_px[pid] + 1e-9, rot_window[pid]
+        o_mid_p, reach_p, rotw_p = o_mid[pid], reach_m[pid] + 1e-9, rot_window[pid]
         # the tangent must be the façade direction turned by θ0 ± rot_window (mod π)
         want = np.mod(pairs.theta[pid] + s_ang[a_seg[pid]], np.pi)
         own, ia = _angle_ranges(anchors, pairs.crops[pid, side], want, rotw_p)
@@ -221,7 +222,9 @@ def hypotheses(atlas: CropAtlas, A: np.ndarray, px0: np.ndarray, anchors: Anchor
         c_, s_ = np.cos(th), np.sin(th)
         xa = anchors.xy[ia]
         mid_w = xa + _rot(c_, s_, v_mid[own])
-        within = np.linalg.norm(mid_w - o_mid_p[own], axis=1) * px_per_m <= win_p[own]
+        within = np.linalg.norm(mid_w - o_mid_p[own], axis=1) <= reach_p[own]
+        if prior_mid is not None:
+            within &= np.linalg.norm(mid_w - prior_mid[pid][own], axis=1) <= prior_radius_m[pid][own]
         own, c_, s_, th, xa, mid_w, delta = (own[within], c_[within], s_[within], th[within], xa[within],
                                              mid_w[within], delta[within])
         xb = xa + _rot(c_, s_, v_b[own])

@@ -7,8 +7,11 @@ its two segment centres. Scale is known, so the centre-line lengths must agree w
 centroid-to-outline distance, which bounds how far a façade centre can sit from its building
 centre), and each façade must fit on its segment (extent ≤ diameter + ``extent_tolerance_m``).
 With a prior (street/gps.csv or the route placement) the edge midpoint must also land within the
-prior radius (+ the offset window) of its prior position, and the pose search only tries rotations
-within ``angle_deg`` of the prior heading. Same-segment labels (p, p) (graph.knn
+prior radius (+ the reach of its segments' outlines, (ρ_p + ρ_q)/2) of its prior position, the
+anchored hypotheses must put it within that radius of the prior position and within (ρ_p + ρ_q)/2
+of the over-view midpoint (without a prior: within the offset window, capped at ``offset_cap_m``,
+which a façade of a large block, far from the block's centre, never reaches), and the pose search
+only tries rotations within ``angle_deg`` of the prior heading. Same-segment labels (p, p) (graph.knn
 ``same_segment_labels``) are scored once: label 2f+1 is a twin of 2f, copied at the end.
 """
 
@@ -25,6 +28,11 @@ from toolkit.matching.config import MatchingConfig
 from toolkit.matching.gps import GpsPrior, PruningPrior
 from toolkit.matching.mrf import wrap_angle
 from toolkit.types import ConjugateGraphs, Grid, OverviewSegments, StreetSegments
+
+
+# an anchored hypothesis is refined by up to a few pixels and a degree afterwards (the search levels),
+# so it may start this far outside the prior radius and still end inside it
+HYPOTHESIS_SLACK_M = 2.0
 
 
 class PruneConfig(MatchingConfig):
@@ -71,6 +79,14 @@ class PairGeometry:
     def j(self) -> np.ndarray:
         return self.edges[:, 0]
 
+    def translation(self, edge: np.ndarray, theta: np.ndarray, pixel: np.ndarray) -> np.ndarray:
+        """(P,2) t of T̂ = (θ, t), x_scene = R(θ)x + t, for edges whose midpoint a pose puts at ``pixel``
+        (P,2, row/col: pivot + offset) turned by ``theta`` (P,)."""
+        c, s = np.cos(theta), np.sin(theta)
+        m = self.s_mid[edge]
+        rot_m = np.stack([c * m[:, 0] - s * m[:, 1], s * m[:, 0] + c * m[:, 1]], axis=1)
+        return (pixel - self.px0) @ self.A_inv.T - rot_m + self.origin
+
     @property
     def k(self) -> np.ndarray:
         return self.edges[:, 1]
@@ -80,12 +96,18 @@ class PairGeometry:
 class Candidates:
     """The (edge, label) pairs to search, row-major: edge, label (P,); pairs: their centre-line
     pose (``Pairs``: angle θ0, pivot at the over-view midpoint, offset window in px); theta_prior (P,)
-    prior heading (NaN: none); twin_edge, twin_label: same-segment twins, copied at the end."""
+    prior heading (NaN: none); reach_m (P,): how far from the over-view midpoint an anchored
+    hypothesis may put the street-edge midpoint ((ρ_p + ρ_q)/2 with a prior, else the offset
+    window); prior_mid (P,2) local metres and prior_radius_m (P,): within what distance of where the
+    prior puts it (inf: no prior); twin_edge, twin_label: same-segment twins, copied at the end."""
 
     edge: np.ndarray
     label: np.ndarray
     pairs: Pairs
     theta_prior: np.ndarray
+    reach_m: np.ndarray
+    prior_mid: np.ndarray
+    prior_radius_m: np.ndarray
     twin_edge: np.ndarray
     twin_label: np.ndarray
     stats: dict
@@ -126,10 +148,11 @@ def select_candidates(geo: PairGeometry, street: StreetSegments, prior: PruningP
     window of a label is offset_window_scale·(ρ_p + ρ_q)/2, capped by offset_cap_m. same_segment:
     keep (p, p) labels (the centre-line angle is undefined for them: any rotation is searched)."""
     lp, j, k = geo.label_pairs, geo.j, geo.k
-    window_of_label = np.minimum(offset_cap_m, offset_window_scale * (geo.rho[lp[:, 0]] + geo.rho[lp[:, 1]]) / 2)
+    reach_of_label = offset_window_scale * (geo.rho[lp[:, 0]] + geo.rho[lp[:, 1]]) / 2
+    window_of_label = np.minimum(offset_cap_m, reach_of_label)
     near = None
     if prior.prior is not None:  # only labels near each edge's prior midpoint can pass its test below
-        near = near_gps_midpoint(prior.prior, prior.radius_m, j, k, geo.o_mid + geo.origin, window_of_label)
+        near = near_gps_midpoint(prior.prior, prior.radius_m, j, k, geo.o_mid + geo.origin, reach_of_label)
     pe, pl = prune_pairs(geo.s_len, geo.o_len, street, lp, j, k, geo.rho, geo.diam, near, prune=prune)
     loop = lp[:, 0] == lp[:, 1]           # same-segment labels (p, p): 2f and 2f+1 coincide
     if not same_segment:
@@ -142,12 +165,16 @@ def select_candidates(geo: PairGeometry, street: StreetSegments, prior: PruningP
     theta0 = wrap_angle(np.arctan2(geo.o_vec[pl, 1], geo.o_vec[pl, 0]) - np.arctan2(geo.s_vec[pe, 1], geo.s_vec[pe, 0]))
     theta0[loop[pl]] = 0.0  # no over-view centre line: a fixed angle, whichever end comes first
     window = window_of_label[pl]
+    reach, prior_mid, prior_radius = window, np.zeros((len(pe), 2)), np.full(len(pe), np.inf)
     if prior.prior is not None:
-        # the edge midpoint lands within the offset window of the over-view midpoint
+        # the edge midpoint, on its segments' outlines, lies within (ρ_p + ρ_q)/2 of the over-view
+        # midpoint, and within the prior radius of its prior position
         g_mid = (prior.prior.position[j[pe]] + prior.prior.position[k[pe]]) / 2
         edge_radius = np.maximum(prior.radius_m[j[pe]], prior.radius_m[k[pe]])
-        ok = np.linalg.norm(geo.o_mid[pl] + geo.origin - g_mid, axis=1) <= edge_radius + window
+        ok = np.linalg.norm(geo.o_mid[pl] + geo.origin - g_mid, axis=1) <= edge_radius + reach_of_label[pl]
         pe, pl, theta0, window = pe[ok], pl[ok], theta0[ok], window[ok]
+        reach = reach_of_label[pl]
+        prior_mid, prior_radius = g_mid[ok] - geo.origin, edge_radius[ok] + HYPOTHESIS_SLACK_M
     # Prior heading of each pair (circular mean of its two segments' local fits), NaN without a prior.
     # The search only tries rotations within angle_deg of it: the final pose test would reject any
     # other, and a same-segment label, which has no centre line, otherwise settles on the
@@ -162,7 +189,7 @@ def select_candidates(geo: PairGeometry, street: StreetSegments, prior: PruningP
         stats["near_gps"] = len(near[0])
     pairs = Pairs(edge=pe, crops=lp[pl], theta=theta0, pivot_px=geo.o_mid[pl] @ geo.A.T + geo.px0,
                   offset=np.zeros((len(pe), 2), np.int64), window_px=window / geo.grid.gsd_m)
-    return Candidates(pe, pl, pairs, theta_prior, twin_e, twin_l, stats)
+    return Candidates(pe, pl, pairs, theta_prior, reach, prior_mid, prior_radius, twin_e, twin_l, stats)
 
 
 def prune_pairs(s_len, o_len, street, lp, j, k, rho, diam, among=None, *, prune: PruneConfig,

@@ -142,16 +142,27 @@ def free_space_probes(model: SparseModel, street: StreetSegments, samples: Stree
     return CH.segment_points(probe_pts, None, geo.s_cent, geo.edges)
 
 
+def prior_term(cand: Candidates, geo: PairGeometry, prior: PruningPrior, gps: GpsConfig):
+    """None without a prior, else (pair index (H,), θ (H,), pixel (H,2)) → the prior's soft term of
+    each pose (``prior_penalty`` without its exact test, which the final pose takes)."""
+    if prior.prior is None:
+        return None
+
+    def term(pair: np.ndarray, theta: np.ndarray, pixel: np.ndarray) -> np.ndarray:
+        pe = cand.edge[pair]
+        t_hat = geo.translation(pe, theta, pixel)
+        return prior_penalty(np.zeros(len(pe)), theta, t_hat, geo.s_cent, geo.j[pe], geo.k[pe], prior, gps,
+                             exact=False)
+
+    return term
+
+
 def fill_costs(costs: DataCosts, cand: Candidates, final: Scored, geo: PairGeometry, prior: PruningPrior,
                gps: GpsConfig, raw_cost_at_null: float) -> DataCosts:
     """``costs`` with the candidates' poses T̂ and rescaled costs, after the prior's test on the final pose."""
     pe, pl = cand.edge, cand.label
     theta = final.pairs.theta
-    # T̂: x_scene = R(θ)(x - s_mid) + A⁻¹(pivot + offset - px0) + origin
-    c, s_ = np.cos(theta), np.sin(theta)
-    m = geo.s_mid[pe]
-    rot_m = np.stack([c * m[:, 0] - s_ * m[:, 1], s_ * m[:, 0] + c * m[:, 1]], axis=1)
-    t_hat = (final.pairs.pivot_px + final.pairs.offset - geo.px0) @ geo.A_inv.T - rot_m + geo.origin
+    t_hat = geo.translation(pe, theta, final.pairs.pivot_px + final.pairs.offset)
     f_cost = final.cost
     if prior.prior is not None:  # the exact test on the final pose, then the soft prior term
         f_cost = prior_penalty(f_cost, theta, t_hat, geo.s_cent, geo.j[pe], geo.k[pe], prior, gps)

@@ -165,14 +165,15 @@ def prior_offsets(prior: GpsPrior, theta: np.ndarray, t: np.ndarray, s_cent: np.
 
 
 def prior_penalty(cost: np.ndarray, theta: np.ndarray, t: np.ndarray, s_cent: np.ndarray, sj: np.ndarray,
-                  sk: np.ndarray, prior: PruningPrior, cfg: GpsConfig) -> np.ndarray:
-    """cost + the soft prior term; +inf where the final pose puts a centre outside its radius or
-    turns farther than angle_deg from the prior heading."""
+                  sk: np.ndarray, prior: PruningPrior, cfg: GpsConfig, exact: bool = True) -> np.ndarray:
+    """cost + the soft prior term; with ``exact``, +inf where the final pose puts a centre outside its
+    radius or turns farther than angle_deg from the prior heading."""
     dist, turn = prior_offsets(prior.prior, theta, t, s_cent, sj, sk)
     rel = dist / np.stack([prior.radius_m[sj], prior.radius_m[sk]], axis=1)
-    bad = rel.max(axis=1) > 1.0
-    if cfg.angle_deg is not None:
-        bad |= turn.max(axis=1) > np.deg2rad(cfg.angle_deg)
     cost = cost + cfg.cost_weight * rel.max(axis=1) ** 2
-    cost[bad] = np.inf
+    if exact:
+        bad = rel.max(axis=1) > 1.0
+        if cfg.angle_deg is not None:
+            bad |= turn.max(axis=1) > np.deg2rad(cfg.angle_deg)
+        cost[bad] = np.inf
     return cost

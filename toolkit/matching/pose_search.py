@@ -42,7 +42,7 @@ class PoseSearchConfig(MatchingConfig):
         200, ge=4, description="street boundary points per segment in the fine search (released code: 200)")
     coarse_points_per_segment: int = Field(
         24, ge=2, description="points per segment in the coarse search over all candidates (count)")
-    offset_cap_m: float = Field(20.0, ge=0, description="cap on the offset search radius (metres)")
+    offset_cap_m: float = Field(20.0, ge=0, description="cap on the offset search radius (metres; with a prior, anchored poses go past it within the prior radius)")
     offset_window_scale: float = Field(
         1.0, ge=0, description="offset radius = scale·(ρ_p + ρ_q)/2 (unitless; ρ from the candidate "
                                "segments' extents), capped by offset_cap_m")
@@ -167,15 +167,16 @@ def window_search(score: Scorer, pts: CH.SegmentPoints, pairs: CH.Pairs, step: i
 
 def anchor_search(score: Scorer, geo: PairGeometry, cand: Candidates, samples: StreetSamples, anchors: AN.Anchors,
                   step: int, stats: dict, *, anchor: AN.AnchorConfig, pose: PoseSearchConfig,
-                  angle_deg: float | None) -> Scored:
+                  angle_deg: float | None, prior_term=None) -> Scored:
     """Anchored hypotheses, each scored at its pose; pairs without one fall back to the window
     search (both façades curved) or to the centre-line pose (no consistent anchoring).
     Hypotheses turned farther than angle_deg from the prior heading are dropped before the best
-    max_hypotheses are kept."""
+    max_hypotheses are kept. ``prior_term(pair index, θ, pixel)``: the prior's soft term of a pose,
+    added to the chamfer cost when a pair's best hypothesis is chosen (as the final cost adds it)."""
     pairs, edges = cand.pairs, geo.edges
     usable = samples.walls[2] >= anchor.min_wall_share
     best = _best_hypotheses(score, geo, cand, samples, anchors, usable, stats, anchor=anchor,
-                            rotation_window_deg=pose.rotation_window_deg, angle_deg=angle_deg)
+                            rotation_window_deg=pose.rotation_window_deg, angle_deg=angle_deg, prior_term=prior_term)
     cost, theta, pivot = best.cost, best.pairs.theta, best.pairs.pivot_px  # fresh arrays, completed below
     offset = np.zeros((len(pairs.edge), 2), np.int64)
     none = ~np.isfinite(cost)
@@ -224,7 +225,7 @@ class _ChunkBest:
 
 def _best_hypotheses(score: Scorer, geo: PairGeometry, cand: Candidates, samples: StreetSamples,
                      anchors: AN.Anchors, usable: np.ndarray, stats: dict, *, anchor: AN.AnchorConfig,
-                     rotation_window_deg: float, angle_deg: float | None) -> Scored:
+                     rotation_window_deg: float, angle_deg: float | None, prior_term=None) -> Scored:
     """Each pair at its best anchored hypothesis (cost +inf and the centre-line pose: none)."""
     pairs = cand.pairs
     s_anchor, s_dir, _ = samples.walls
@@ -237,13 +238,15 @@ def _best_hypotheses(score: Scorer, geo: PairGeometry, cand: Candidates, samples
     def best_hypothesis(start: int) -> _ChunkBest | None:
         idx = np.arange(start, min(P, start + chunk))
         hp, hyp = AN.hypotheses(score.atlas, geo.A, geo.px0, anchors, pairs.take(idx), s_anchor, s_dir, usable,
-                                geo.edges, geo.s_mid, o_mid[idx], rot_window[idx], anchor.tolerance_px,
-                                anchor.max_hypotheses, cand.theta_prior[idx], prior_window)
+                                geo.edges, geo.s_mid, o_mid[idx], cand.reach_m[idx], rot_window[idx], anchor.tolerance_px,
+                                anchor.max_hypotheses, cand.theta_prior[idx], prior_window, cand.prior_mid[idx],
+                                cand.prior_radius_m[idx])
         if len(hp) == 0:
             return None
         h_cost, h_theta, _ = score(1, samples.coarse_pts, hyp, np.zeros(1), np.zeros((1, 2)))
+        rank = h_cost if prior_term is None else h_cost + prior_term(idx[hp], h_theta, hyp.pivot_px)
         # ties broken by the pose itself, not by which end of the edge anchored it
-        order = np.lexsort((hyp.pivot_px[:, 1].round(6), hyp.pivot_px[:, 0].round(6), h_cost, hp))
+        order = np.lexsort((hyp.pivot_px[:, 1].round(6), hyp.pivot_px[:, 0].round(6), rank, hp))
         first = order[np.r_[True, hp[order][1:] != hp[order][:-1]]]
         return _ChunkBest(idx[hp[first]], h_cost[first], h_theta[first], hyp.pivot_px[first], len(hp))
 
