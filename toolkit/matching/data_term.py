@@ -24,6 +24,7 @@ from toolkit.matching import anchors as AN
 from toolkit.matching import chamfer as CH
 from toolkit.matching.candidates import Candidates, PairGeometry
 from toolkit.matching.config import MatchingConfig
+from toolkit.matching.pose_search import PriorTerm
 from toolkit.matching.gps import (
     GpsConfig,
     GpsPrior,
@@ -142,7 +143,7 @@ def free_space_probes(model: SparseModel, street: StreetSegments, samples: Stree
     return CH.segment_points(probe_pts, None, geo.s_cent, geo.edges)
 
 
-def prior_term(cand: Candidates, geo: PairGeometry, prior: PruningPrior, gps: GpsConfig):
+def prior_term(cand: Candidates, geo: PairGeometry, prior: PruningPrior, gps: GpsConfig) -> PriorTerm | None:
     """None without a prior, else (pair index (H,), θ (H,), pixel (H,2)) → the prior's soft term of
     each pose (``prior_penalty`` without its exact test, which the final pose takes)."""
     if prior.prior is None:

@@ -21,7 +21,7 @@ map.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Callable, Literal
 
 import numpy as np
 from pydantic import Field
@@ -34,6 +34,9 @@ from toolkit.matching.config import MatchingConfig
 from toolkit.threads import map_in_order
 from toolkit.types import OverviewSegments, StreetSegments
 
+# (pair index (H,), θ (H,), pixel (H,2)) → the prior's soft term of each pose (H,)
+PriorTerm = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+
 
 class PoseSearchConfig(MatchingConfig):
     """Windows, steps and point counts of the pose search."""
@@ -42,7 +45,8 @@ class PoseSearchConfig(MatchingConfig):
         200, ge=4, description="street boundary points per segment in the fine search (released code: 200)")
     coarse_points_per_segment: int = Field(
         24, ge=2, description="points per segment in the coarse search over all candidates (count)")
-    offset_cap_m: float = Field(20.0, ge=0, description="cap on the offset search radius (metres; with a prior, anchored poses go past it within the prior radius)")
+    offset_cap_m: float = Field(20.0, ge=0, description="cap on the offset search radius (metres; with a prior, "
+                                                        "anchored poses go past it within the prior radius)")
     offset_window_scale: float = Field(
         1.0, ge=0, description="offset radius = scale·(ρ_p + ρ_q)/2 (unitless; ρ from the candidate "
                                "segments' extents), capped by offset_cap_m")
@@ -167,7 +171,7 @@ def window_search(score: Scorer, pts: CH.SegmentPoints, pairs: CH.Pairs, step: i
 
 def anchor_search(score: Scorer, geo: PairGeometry, cand: Candidates, samples: StreetSamples, anchors: AN.Anchors,
                   step: int, stats: dict, *, anchor: AN.AnchorConfig, pose: PoseSearchConfig,
-                  angle_deg: float | None, prior_term=None) -> Scored:
+                  angle_deg: float | None, prior_term: PriorTerm | None = None) -> Scored:
     """Anchored hypotheses, each scored at its pose; pairs without one fall back to the window
     search (both façades curved) or to the centre-line pose (no consistent anchoring).
     Hypotheses turned farther than angle_deg from the prior heading are dropped before the best
@@ -225,7 +229,7 @@ class _ChunkBest:
 
 def _best_hypotheses(score: Scorer, geo: PairGeometry, cand: Candidates, samples: StreetSamples,
                      anchors: AN.Anchors, usable: np.ndarray, stats: dict, *, anchor: AN.AnchorConfig,
-                     rotation_window_deg: float, angle_deg: float | None, prior_term=None) -> Scored:
+                     rotation_window_deg: float, angle_deg: float | None, prior_term: PriorTerm | None = None) -> Scored:
     """Each pair at its best anchored hypothesis (cost +inf and the centre-line pose: none)."""
     pairs = cand.pairs
     s_anchor, s_dir, _ = samples.walls
