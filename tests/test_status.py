@@ -77,11 +77,17 @@ def test_good_figures_are_ok_with_full_confidence():
     ({"segment_scale_median": 0.955}, "median scale of 0.955"),
     ({"prior_links_broken": 2, "prior_links": 9, "prior_link_max_m": 1119.2}, "route placement puts 2 of its 9"),
     ({"camera_gap_p90_m": 160.3}, "a tenth of the cameras are 160 m"),
+    ({"neighbour_gap_median_m": 1.85, "neighbour_gap_p90_m": 3.5}, "place each other 1.9 m apart"),
 ])
 def test_each_hard_reason_fires_first(change, fragment):
     verdict = StatusRule().judge({**GOOD, **change})
     assert verdict.status == "unreliable"
     assert fragment in verdict.reasons[0], verdict.reasons
+
+
+def test_neighbours_a_metre_apart_are_ok():
+    verdict = StatusRule().judge({**GOOD, "neighbour_gap_median_m": 1.3, "neighbour_gap_p90_m": 3.5})
+    assert verdict.status == "ok", verdict.reasons
 
 
 def test_gps_tolerance_grows_with_sigma():

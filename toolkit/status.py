@@ -67,6 +67,7 @@ class StatusRule:
     min_facade_support_share: float = 0.4
     max_facade_distance_median_m: float = 1.2
     max_neighbour_disagree_share: float = 0.4
+    max_neighbour_gap_median_m: float = 1.5     # accurate matrix runs: 99th percentile 0.9–1.3 m
     max_outside_grid_share: float = 0.5
     max_segment_scale_deviation: float = 0.035   # |median segment scale − 1|: drift of ±3 % moves it ≤ 1.5 %
     max_route_links_broken: int = 0     # route placement (no GPS): neighbouring windows placed apart
@@ -197,6 +198,14 @@ def _hard_neighbours(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
             f"by their own transforms (median {f.get('neighbour_gap_median_m') or 0:.1f} m): wrong matches")
 
 
+def _hard_neighbour_gap(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
+    g = f.get("neighbour_gap_median_m")
+    if g is None or g <= rule.max_neighbour_gap_median_m:
+        return None
+    return (f"neighbouring segments' own transforms place each other {g:.1f} m apart (median; at most "
+            f"{rule.max_neighbour_gap_median_m:g} m expected): the registration is uncertain by metres")
+
+
 def _hard_route_chain(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
     n = f.get("prior_links_broken")
     if n is None or n <= rule.max_route_links_broken:
@@ -243,6 +252,7 @@ def _hard_registered(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
 HARD_CHECKS = {"gps_residual_ratio": _hard_gps, "facade_support_share": _hard_facades,
                "facade_distance_median_m": _hard_facade_distance,
                "outside_grid_share": _hard_outside, "neighbour_disagree_share": _hard_neighbours,
+               "neighbour_gap_median_m": _hard_neighbour_gap,
                "prior_links_broken": _hard_route_chain,
                "camera_height_median_m": _hard_camera_height, "registered_point_share": _hard_registered,
                "segment_scale_median": _hard_segment_scale, "camera_gap_p90_m": _hard_camera_gap}
