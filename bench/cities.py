@@ -451,9 +451,14 @@ def code_state() -> tuple[str, str]:
         return subprocess.run(["git", *args], capture_output=True, text=True, cwd=REPO).stdout
 
     sha = git("rev-parse", "--short", "HEAD").strip() or "unknown"
-    diff = git("diff", "HEAD")
-    dirty = bool(git("status", "--porcelain", "--untracked-files=no").strip())
-    return sha + ("-dirty" if dirty else ""), hashlib.sha1(diff.encode()).hexdigest()[:12]
+    digest = hashlib.sha1(git("diff", "HEAD").encode())
+    # new files the runs may import (a module not yet added) are part of the state too
+    untracked = sorted(f for f in git("ls-files", "--others", "--exclude-standard").splitlines()
+                       if f.endswith((".py", ".yaml")))
+    for f in untracked:
+        digest.update(f.encode() + b"\0" + (REPO / f).read_bytes())
+    dirty = bool(git("status", "--porcelain", "--untracked-files=no").strip()) or bool(untracked)
+    return sha + ("-dirty" if dirty else ""), digest.hexdigest()[:12]
 
 
 def save(rows: list[dict], state: tuple[str, str]) -> None:
