@@ -67,7 +67,7 @@ class StatusRule:
     min_facade_support_share: float = 0.4
     max_facade_distance_median_m: float = 1.2
     max_neighbour_disagree_share: float = 0.4
-    max_neighbour_gap_median_m: float = 1.5     # accurate matrix runs: 99th percentile 0.9–1.3 m
+    max_neighbour_gap_median_m: float = 1.5     # drift parts neighbouring transforms by decimetres, not metres
     max_outside_grid_share: float = 0.5
     max_segment_scale_deviation: float = 0.035   # |median segment scale − 1|: drift of ±3 % moves it ≤ 1.5 %
     max_route_links_broken: int = 0     # route placement (no GPS): neighbouring windows placed apart
