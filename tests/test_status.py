@@ -194,6 +194,7 @@ def test_forced_wrong_labelling_is_unreliable_exit_4(tmp_path):
     assert metrics["status"] == "unreliable" and lines[-1].endswith(metrics["reasons"][0])
     assert metrics["assessment"]["facade_support_share"] < 0.5
     assert metrics["truth"]["horizontal"]["median_m"] > 5  # it is indeed wrong (truth read only by the test)
+    assert "tries" not in metrics  # a GPS scale: no other scale to try
 
 
 def test_metrics_without_evaluate_lead_with_status_and_are_reproducible(tmp_path):

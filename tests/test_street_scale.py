@@ -95,6 +95,7 @@ def test_without_gps_the_matching_estimates_the_scale(scaled_scenes, tmp_path, s
     assert code == code1 == 0 and m["status"] == "ok"
     est, est1 = m["street_scale"], m1["street_scale"]
     assert est["source"] == est1["source"] == "matching" and est1["value"] == 1.0
+    assert "tries" not in m and "tries" not in m1  # ok at once: run once
     # the same scene's estimate at scale 1 carries the route's mean drift: compare with it
     assert abs(est["matching_estimate"] / (scale * est1["matching_estimate"]) - 1) < 0.01
     h1, h = m1["truth"]["horizontal"]["median_m"], m["truth"]["horizontal"]["median_m"]
@@ -110,6 +111,28 @@ def test_a_wrong_first_guess_is_corrected_by_a_second_street_pass(low_cameras, t
     assert m["truth"]["horizontal"]["median_m"] < 0.3
     timings = json.loads((tmp_path / "low" / "timings.json").read_text())
     assert timings["scale"] > 0
+
+
+def test_an_unreliable_run_at_the_scans_scale_runs_again_at_the_first_guess(scaled_scenes, tmp_path, monkeypatch):
+    """The façades' scan only proposes a scale: a registration it leaves unreliable is run again at
+    the cameras' height first guess, kept when ok (here the scan is made to propose 0.6 × the guess)."""
+    from dataclasses import replace
+
+    import toolkit.runner as runner
+
+    def misled(scale, *args, **kwargs):
+        if scale.matching.get("passes", 0) == 0:   # the first check: a second street pass at 0.6 ×
+            return replace(scale, value=0.6 * scale.value, matching={**scale.matching, "passes": 1}, settled=False)
+        return replace(scale, settled=True)
+
+    monkeypatch.setattr(runner, "scale_from_matching", misled)
+    code, m = _run(_without_gps(scaled_scenes[1.0]), tmp_path / "misled")
+    assert [(t["scale_from"], t["street_scale"], t["status"]) for t in m["tries"]] == [
+        ("run", 0.6, "unreliable"), ("first guess", 1.0, "ok")]
+    assert code == 0 and m["status"] == "ok" and m["street_scale"]["value"] == 1.0
+    assert m["truth"]["horizontal"]["median_m"] < 0.3
+    assert any("kept: the one at the cameras' height first guess 1" in w for w in m["warnings"])
+    assert json.loads((tmp_path / "misled" / "timings.json").read_text())["retries"] > 0
 
 
 def test_a_wrong_given_scale_ends_unreliable_with_exit_4(scaled_scenes, tmp_path, capsys):

@@ -179,6 +179,16 @@ class StreetScaleEntry(Entry):
     matching: dict[str, Any] | None = None  # the scan's figures (toolkit.street_scale.scale_from_matching)
 
 
+class TryEntry(Entry):
+    """One registration of a run that ran again at another street scale: the scale, where it came from, verdict."""
+
+    street_scale: float | None = None
+    scale_from: str | None = None  # "run" | "first guess"
+    status: str | None = None
+    confidence: float | None = None
+    reason: str | None = None
+
+
 class StreetCloudEntry(Entry):
     """How much of the street cloud the run analysed (``toolkit.stream``)."""
 
@@ -221,6 +231,7 @@ class RunMetrics(Entry):
     coverage: Coverage | None = None  # absent without street segments, or without matches and transforms
     crs: str | None = None
     street_scale: StreetScaleEntry | None = None
+    tries: list[TryEntry] | None = None  # absent unless an unreliable run ran again at another scale (toolkit.runner)
     street_cloud: StreetCloudEntry | None = None  # absent without a street cloud
     heights: str | None = None  # "absolute" | "relative" (docs/scale_and_heights.md)
     segment_scale: SegmentScale | None = None  # absent without transforms, null without a valid one

@@ -81,10 +81,11 @@ def coverage(outputs: RunOutputs) -> dict[str, Any] | None:
 
 
 def write_outputs(out: Path, plan, outputs: RunOutputs, timings: dict[str, float],
-                  warnings: list[str], assessment=None, notes: list[str] = (), progress=None) -> None:
+                  warnings: list[str], assessment=None, notes: list[str] = (), progress=None, tries=()) -> None:
     """``assessment``: the run's ``toolkit.status.Assessment`` (assessed here when None); ``notes``:
     what the readers noted (e.g. a raster resampled onto the scene grid); ``progress``: an observer's
-    ``progress``, shown while a large cloud is written a chunk at a time."""
+    ``progress``, shown while a large cloud is written a chunk at a time; ``tries``: every registration
+    of a run that ran again at another street scale (``toolkit.runner.Try``), written when there are several."""
     from toolkit.status import assess
 
     if assessment is None:
@@ -126,6 +127,8 @@ def write_outputs(out: Path, plan, outputs: RunOutputs, timings: dict[str, float
         metrics_values["coverage"] = cov
     metrics_values["crs"] = plan.scene.crs
     metrics_values["street_scale"] = plan.scene.street_scale.as_dict()
+    if len(tries) > 1:
+        metrics_values["tries"] = [t.as_dict() for t in tries]
     if outputs.capture is not None and outputs.capture.cloud_path is not None:
         metrics_values["street_cloud"] = street_cloud_entry(outputs.capture)
     metrics_values["heights"] = height_kind(plan.scene, outputs.overview)

@@ -21,7 +21,7 @@ from toolkit.overlap import BufferedObserver, Prefetcher, independent
 from toolkit.recipe import Recipe, StepSpec, load_recipe
 from toolkit.registry import Registry, default_registry
 from toolkit.scene import FIELD_TO_MANIFEST, load_scene
-from toolkit.street_scale import resolve_street_scale, scale_from_matching
+from toolkit.street_scale import first_guess_alternative, resolve_street_scale, scale_from_matching
 from toolkit.stage import KIND_INPUTS, KIND_OPTIONAL, KIND_OUTPUT, KIND_OUTPUT_TYPE, RUN_INPUTS, Stage
 from toolkit.status import Assessment, assess
 from toolkit.threads import single_threaded_blas, thread_budget
@@ -159,8 +159,8 @@ class _Rescale(Exception):
         self.scale, self.made, self.seconds = scale, made, seconds
 
 
-def execute(plan: Plan, obs: Observer | None = None,
-            overlap: bool | None = None) -> tuple[RunOutputs, dict[str, float]]:
+def execute(plan: Plan, obs: Observer | None = None, overlap: bool | None = None,
+            keep: RunOutputs | None = None) -> tuple[RunOutputs, dict[str, float]]:
     """Run the stages in recipe order; returns what they made (with the scene and its capture, whose
     street scale is the one the run settled on) and seconds per step.
 
@@ -173,10 +173,12 @@ def execute(plan: Plan, obs: Observer | None = None,
     right after the street step (``toolkit.street_scale.scale_from_matching``); when they fit at
     another scale, the steps run again from the street step at it (the over-view is kept). The
     seconds of that check and of the street passes it discarded are ``scale``.
+
+    ``keep``: outputs made before (the over-view) that the steps do not make again.
     """
     obs = obs or NullObserver()
     overlap = thread_budget() >= 2 if overlap is None else overlap
-    spent, made = 0.0, None
+    spent, made = 0.0, keep
     while True:
         try:
             outputs, timings = _execute(plan, obs, overlap, made)
@@ -190,6 +192,78 @@ def execute(plan: Plan, obs: Observer | None = None,
         if spent or "scale" in timings:
             timings["scale"] = timings.get("scale", 0.0) + spent
         return outputs, timings
+
+
+@dataclass(frozen=True)
+class Try:
+    """One registration of a run: the street scale it ran at, where that scale came from, its verdict
+    (``toolkit.status``) and seconds."""
+
+    street_scale: float
+    scale_from: str  # "run": as the run settled it; "first guess": the cameras' height (toolkit.street_scale)
+    status: str
+    confidence: float
+    reason: str
+    seconds: float
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"street_scale": round(self.street_scale, 6), "scale_from": self.scale_from, "status": self.status,
+                "confidence": self.confidence, "reason": self.reason}
+
+
+@dataclass(frozen=True)
+class Assessed:
+    """The registration a run keeps, with its warnings and notes, and every try (one unless retried)."""
+
+    outputs: RunOutputs
+    timings: dict[str, float]
+    assessment: Assessment
+    warnings: tuple[str, ...]
+    notes: tuple[str, ...]
+    tries: tuple[Try, ...]
+
+
+def _try(plan: Plan, obs: Observer, overlap: bool | None, scale_from: str, keep: RunOutputs | None = None,
+         seen: int = 0) -> Assessed:
+    """One registration; its warnings are the observer's from the ``seen``-th on and those logged."""
+    t0 = time.perf_counter()
+    with collected_log() as logged:
+        outputs, timings = execute(plan, obs, overlap, keep)
+    assessment = assess(outputs)
+    verdict = Try(outputs.scene.street_scale.value, scale_from, assessment.status, assessment.confidence,
+                  assessment.main_reason, time.perf_counter() - t0)
+    warnings = list(getattr(obs, "warnings", []))[seen:] + logged.warnings
+    return Assessed(outputs, timings, assessment, tuple(warnings), tuple(logged.notes), (verdict,))
+
+
+def execute_assessed(plan: Plan, obs: Observer | None = None, overlap: bool | None = None) -> Assessed:
+    """``execute``, assessed without truth. When the registration is unreliable and the façades' scan
+    moved the street scale away from the cameras' height first guess (no GPS,
+    ``toolkit.street_scale.first_guess_alternative``), the steps run again from the street step at
+    the first guess (the over-view is kept), and that registration is kept when it is ``ok``."""
+    obs = obs or NullObserver()
+    first = _try(plan, obs, overlap, "run")
+    scale = first.outputs.scene.street_scale
+    other = first_guess_alternative(scale)
+    if first.assessment.reliable or other is None:
+        return first
+    log.info("registration unreliable at the street scale %.4g the façades chose (%s): the steps run again from "
+             "the street step at the cameras' height first guess %.4g", scale.value, first.assessment.main_reason,
+             other.value)
+    again = _try(_with_scale(plan, other), obs, overlap, "first guess",
+                 RunOutputs(scene=plan.scene, capture=plan.capture, overview=first.outputs.overview),
+                 seen=len(getattr(obs, "warnings", [])))
+    tries = first.tries + again.tries
+    if again.assessment.reliable:
+        note = (f"street scale {scale.value:.4g} (the façades' scan) gave an unreliable registration "
+                f"({first.assessment.main_reason}); kept: the one at the cameras' height first guess "
+                f"{other.value:.4g} (ok, confidence {again.assessment.confidence:.2f})")
+        kept, spent = again, first.tries[0].seconds
+    else:
+        note = (f"the registration at the cameras' height first guess {other.value:.4g} was unreliable too "
+                f"({again.assessment.main_reason}); kept: the one at the façades' scale {scale.value:.4g}")
+        kept, spent = first, again.tries[0].seconds
+    return replace(kept, timings={**kept.timings, "retries": spent}, warnings=kept.warnings + (note,), tries=tries)
 
 
 def _with_scale(plan: Plan, scale: StreetScale) -> Plan:
@@ -371,15 +445,15 @@ def _run_plan(plan: Plan, recipe: Recipe, out_dir: Path, overwrite: bool, observ
             rerun_obs = RerunObserver(target, max_points=int(recipe.log.get("max_points", 200_000)))
             rerun_obs.log_text("recipe", f"```yaml\n{recipe.to_yaml()}\n```")
             obs = MultiObserver(obs, rerun_obs)
-        with collected_log() as logged:
-            outputs, timings = execute(plan, obs, overlap)
+        kept = execute_assessed(plan, obs, overlap)
+        outputs, assessment = kept.outputs, kept.assessment
         plan = replace(plan, scene=outputs.scene, capture=outputs.capture)  # the street scale settled on
         if rerun_obs is not None:
             rerun_obs.close()
             rerun_obs = None
-        warnings = list(getattr(obs, "warnings", [])) + logged.warnings
-        assessment = assess(outputs)
-        write_outputs(tmp, plan, outputs, timings, warnings, assessment, notes=logged.notes, progress=obs.progress)
+        warnings, timings = list(kept.warnings), kept.timings
+        write_outputs(tmp, plan, outputs, timings, warnings, assessment, notes=list(kept.notes),
+                      progress=obs.progress, tries=kept.tries)
         if out_dir.exists():
             shutil.rmtree(out_dir)
         tmp.rename(out_dir)

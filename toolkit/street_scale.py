@@ -169,6 +169,17 @@ def scale_from_matching(scale: StreetScale, street, overview, capture: StreetCap
     return replace(kept, value=value, settled=False)
 
 
+def first_guess_alternative(scale: StreetScale) -> StreetScale | None:
+    """The cameras' height first guess as a settled scale, when the façades' scan (no GPS) moved the
+    run's scale beyond KEEP_BAND from it; else None. The scan's peak is a hypothesis: a run it
+    leaves unreliable is run again at the first guess (``toolkit.runner.execute_assessed``)."""
+    guess = (scale.matching or {}).get("first_guess")
+    if scale.source != "matching" or guess is None or abs(np.log(scale.value / guess)) <= np.log1p(KEEP_BAND):
+        return None
+    figures = {**scale.matching, "retried_at_first_guess": True}
+    return replace(scale, value=float(guess), matching=figures, settled=True)
+
+
 def scale_from_gps(scene: Scene) -> StreetScale | None:
     """The median ratio of camera-centre to fix distances over fix pairs 50-500 m apart (None: < 20 pairs)."""
     from toolkit.io.gps import match_images, read_gps_csv
