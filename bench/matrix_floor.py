@@ -14,6 +14,10 @@ Printed: the bar count of every key; the runs that flip the bar between base rep
 per run, the base replicas' horizontal median and p95; then, with a variant, its mean bar count
 against the base's, and the runs whose median over the variant's replicas lies below / above the
 base replicas' range (better / worse), for the horizontal median and for the p95.
+
+``--retry``: what "run an unreliable registration again on the next replica's input, keep the first
+``ok`` one (else the first, or else the most confident)" would give, the base keys taken in the
+order given (bench/RESULTS.md, the retry section).
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import math
 import statistics
 
 from cities import RESULTS, meets_bar
@@ -53,10 +58,31 @@ def beyond(variant: list[dict], base: list[dict], runs: list[tuple], f: int) -> 
     return below, above
 
 
+def summary(rows: list[dict]) -> str:
+    """Bar count, runs > 2 m off, those `ok`, `ok` runs with p95 > 3 m, geometric mean of the
+    horizontal medians and the status × accuracy confusion of one set of runs."""
+    h = [figures(r)[0] for r in rows]
+    ok = [r.get("status") == "ok" for r in rows]
+    bar = [meets_bar(r) for r in rows]
+    conf = [sum(not o and b for o, b in zip(ok, bar)), sum(not o and not b for o, b in zip(ok, bar)),
+            sum(o and b for o, b in zip(ok, bar)), sum(o and not b for o, b in zip(ok, bar))]
+    geo = math.exp(statistics.mean(math.log(min(v, 1e3)) for v in h))
+    return (f"bar {sum(bar):2d}  > 2 m {sum(v > 2 for v in h)}  ok & > 2 m {sum(o and v > 2 for o, v in zip(ok, h))}  "
+            f"ok & p95 > 3 m {sum(o and figures(r)[1] > 3 for o, r in zip(ok, rows))}  geo-mean h {geo:.3f} m  "
+            f"flagged&acc / flagged&not / ok&acc / ok&not {'/'.join(map(str, conf))}")
+
+
+def retried(base: list[dict], runs: list[tuple], fallback) -> list[dict]:
+    """Each run's first `ok` replica in the order given, else ``fallback`` of its replicas."""
+    return [next((s[r] for s in base if s[r].get("status") == "ok"), None) or fallback([s[r] for s in base])
+            for r in runs]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--base", nargs="+", required=True, help="replicas of the base code (matrix-run keys)")
     ap.add_argument("--variant", nargs="*", default=[], help="the same replicas of the changed code")
+    ap.add_argument("--retry", action="store_true", help="simulate retrying unreliable runs on the next base replica")
     args = ap.parse_args()
     results = json.loads(RESULTS.read_text())
     base = [rows_of(results, k) for k in args.base]
@@ -74,6 +100,14 @@ def main() -> None:
         h = " ".join(f"{figures(s[r])[0]:6.2f}" for s in base)
         p = " ".join(f"{figures(s[r])[1]:6.2f}" for s in base)
         print(f"{r[0]:17s} {r[1]:9s} {'yes' if r[2] else 'no ':3s}  {h:24s}  {p}")
+    if args.retry:
+        print("\nretry an unreliable run on the next replica's input (base keys in the order given):")
+        for i, key in enumerate(args.base):
+            print(f"  {key:36s} {summary([base[i][r] for r in runs])}")
+        for n in range(2, len(base) + 1):
+            for name, pick in (("the first", lambda rs: rs[0]),
+                               ("the most confident", lambda rs: max(rs, key=lambda r: r.get("confidence") or 0))):
+                print(f"  {n} tries, else {name:18s} {summary(retried(base[:n], runs, pick))}")
     if variant:
         mean = [statistics.mean(bar_count(s, runs) for s in g) for g in (base, variant)]
         hb, ha = beyond(variant, base, runs, 0)
