@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -82,6 +84,22 @@ def test_harder_problem_bounds_and_monotonicity():
     assert np.all(np.diff(t.bound_trace) >= -1e-6)
     assert np.all(np.diff(i.energy_trace) <= 1e-12)
     assert i.energy <= g.energy
+
+
+def test_loopy_bp_damps_harder_where_the_flooding_schedule_cycles():
+    """The plain update (damping 0) cycles on this problem and gives up after stall_iters; halving
+    (1 − damping) instead reaches a labelling that holds for patience counted in the same message
+    travel (patience·(1 − 0)/(1 − d) iterations at damping d), at no higher energy."""
+    p = synthetic_problem(n_matched=60, n_street_only=3, n_overview_only=8, seed=0, decoy_rate=0.3,
+                          length_tol_m=30)
+    m = _mrf(p)
+    kw = dict(damping=0.0, patience=2, stall_iters=30, max_iters=300, polish=True)
+    plain, damped = loopy_bp(m, **kw), loopy_bp(m, max_damping=0.9375, **kw)
+    assert not plain.converged and plain.damping == 0.0 and plain.iterations < 100
+    assert damped.converged and 0.0 < damped.damping <= 0.9375
+    held = math.ceil(2 / (1.0 - damped.damping))
+    assert held > 2 and len(set(damped.energy_trace[-(held + 1):])) == 1
+    assert damped.energy <= plain.energy + 1e-9
 
 
 def test_pgmpy_answer_complete_when_every_potential_would_be_negative():

@@ -10,10 +10,14 @@ a handful of numpy reductions (loopy BP: one plan for every message; TRW-S: one 
 ``loopy_bp`` is the paper's synchronous (flooding) schedule in the cost domain: all messages are
 updated from the previous ones, normalised to min 0, optionally damped; labels are the belief
 argmins; it stops when the energy of the labelling has not changed for ``patience`` iterations.
+Where the flooding schedule keeps cycling (the best energy stops improving), it damps harder and
+goes on: a damped update has the same fixed points as the plain one, it only moves towards them in
+smaller steps, so ``patience`` is counted in the same message travel (more iterations per unit).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -114,12 +118,15 @@ def _incoming_matrix(mrf: MRF, position: np.ndarray, dtype: type = np.float64):
 
 def loopy_bp(mrf: MRF, max_iters: int = 100, damping: float = 0.0, patience: int = 1,
              energy_tol: float = 1e-9, message_tol: float | None = None, stall_iters: int | None = None,
-             dtype: type = np.float64, polish: bool = False, on_iter: IterCallback | None = None) -> SolveResult:
+             max_damping: float | None = None, dtype: type = np.float64, polish: bool = False,
+             on_iter: IterCallback | None = None) -> SolveResult:
     """Synchronous min-sum loopy BP (module doc). Returns the lowest-energy labelling seen.
 
     Converged: the energy has not changed for ``patience`` iterations and, unless message_tol is
     None (the paper's criterion), no message entry moved by more than message_tol in the last one.
-    Gives up (not converged) when the best energy has not improved for ``stall_iters`` iterations.
+    When the best energy has not improved for ``stall_iters`` iterations: with ``max_damping``, halve
+    (1 − damping), up to max_damping, count patience as patience·(1 − damping₀)/(1 − damping) and go
+    on; otherwise (or at max_damping) give up, not converged.
     dtype: of the messages; float32 halves the memory traffic of every sweep (energies stay float64).
     polish: finish with ICM started from that labelling (never raises its energy; as TRW-S does): a
     belief argmin is only locally consistent through the messages, so a single node can still have
@@ -139,16 +146,16 @@ def loopy_bp(mrf: MRF, max_iters: int = 100, damping: float = 0.0, patience: int
     tracker = BestTracker(mrf, patience, energy_tol, on_iter)
     tracker.start(mrf.greedy_local())
     belief = unary.copy()
-    converged, it = False, 0
+    converged, it, d = False, 0, damping
     for it in range(1, max_iters + 1):
         if n_slots:
             np.take(mp, stored_at, out=tmp, mode="clip")
             np.take(belief, mrf.slot_node_flat, out=h, mode="clip")
             np.subtract(h, tmp, out=h)  # at slot of j→i: node i's values without j's message
             send(plan, h, mrf.c1, mrf.c2, out=new)
-            if damping > 0.0:
-                new *= 1.0 - damping
-                np.multiply(mp, damping, out=tmp)
+            if d > 0.0:
+                new *= 1.0 - d
+                np.multiply(mp, d, out=tmp)
                 new += tmp
             belief = unary + incoming @ new
         still = tracker.step(it, segment_argmin(belief, mrf.act_ptr))
@@ -160,7 +167,11 @@ def loopy_bp(mrf: MRF, max_iters: int = 100, damping: float = 0.0, patience: int
             converged = True
             break
         if stall_iters is not None and tracker.since_best >= stall_iters:
-            break
+            if max_damping is None or d >= max_damping:
+                break
+            d = min(max_damping, 1.0 - (1.0 - d) / 2.0)
+            tracker.patience = math.ceil(patience * (1.0 - damping) / (1.0 - d))
+            tracker.since_best = tracker.still = 0
     labels, energy = tracker.best_labels, tracker.best_energy
     if polish:
         # ICM from the best belief-argmin labelling and from the final messages decoded sequentially
@@ -174,7 +185,7 @@ def loopy_bp(mrf: MRF, max_iters: int = 100, damping: float = 0.0, patience: int
                 starts = (decoded,)
         labels, energy = icm_polish(mrf, labels, energy, starts)
     return SolveResult(labels=labels, energy=energy, energy_trace=tracker.trace,
-                       iterations=it, converged=converged)
+                       iterations=it, converged=converged, damping=d)
 
 
 def sequential_decode(mrf: MRF, msg: np.ndarray) -> np.ndarray:

@@ -42,6 +42,7 @@ class SolveResult:
     iterations: int = 0
     converged: bool = False
     lower_bound: float | None = None
+    damping: float | None = None  # loopy BP: the damping it ended with
 
 
 class BestTracker:
@@ -212,7 +213,8 @@ def solve_stage(graphs: ConjugateGraphs, costs: DataCosts, params: Any, obs: Any
     else:
         result = run(mrf, iteration_logger(obs))
         if not result.converged:
+            damped = "" if result.damping is None else f", final damping {result.damping:g}"
             obs.warn(f"{solver} did not converge in {result.iterations} iterations (energy still changing or "
-                     f"oscillating); "
+                     f"oscillating{damped}); "
                      f"keeping the lowest-energy labelling seen (E = {result.energy:.4f})")
     return to_matches(graphs, costs, mrf, result, obs, solver, params.tie_min_extent_m)
