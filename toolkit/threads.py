@@ -77,3 +77,10 @@ def single_threaded_blas():
     and vector-sized LSMR steps, where BLAS threads gain nothing and, on a loaded machine, lose much
     to synchronisation (measured: (3.5 M,3) @ (3,3) 6–7.5 s multi-threaded, 0.3 s on one thread)."""
     return threadpool_limits(1, user_api="blas")
+
+
+@contextmanager
+def openmp_threads(n: int) -> Iterator[None]:
+    """At most ``n`` OpenMP threads within this block (a library that takes no ``workers``)."""
+    with threadpool_limits(limits=n, user_api="openmp"):
+        yield
