@@ -24,9 +24,10 @@ class LoopyBP(Stage):
     bench/table1.py), the damped one settles in 5–10 iterations. Where it still cycles (the best
     energy has not improved for ``stall_iters`` iterations) it halves (1 − damping), up to
     ``max_damping``, and goes on, with ``patience`` counted in the same message travel
-    (docs/matching.md). It gives up at ``max_iters`` or at max_damping (then warns). Returns the lowest-energy labelling seen, then (``polish``) lets ICM improve single
-    nodes of it and of the final messages decoded sequentially (each node conditioned on its earlier
-    neighbours' labels, as TRW-S decodes): the belief argmin can leave a node whose label is strictly
+    (docs/matching.md). It gives up at ``max_iters`` or at max_damping (then warns). Returns the
+    lowest-energy labelling seen, then (``polish``) lets ICM improve single nodes of it and of the
+    final messages decoded sequentially (each node conditioned on its earlier neighbours' labels, as
+    TRW-S decodes): the belief argmin can leave a node whose label is strictly
     worse than another given its neighbours' final labels (campus seed 3, label map: E 259.563 for
     BP vs 259.462 for ICM from winner-takes-all; held-out seed 7, DSM: 190.903 vs 190.872, polished
     190.872). Polishing is not in the paper (polish=False is its output); it cannot make BP worse
