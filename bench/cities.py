@@ -438,12 +438,18 @@ def print_table(rows: list[dict]) -> None:
     n = sum(r["meets_bar"] for r in rows)
     print(f"\n{n} of {len(rows)} runs meet the bar (horizontal median <= 0.5 m AND p95 <= 1.5 m "
           f"(3D for dsm, 'h' horizontal for osm/label_map) AND 3D mean < rigid-fit mean)")
-    flagged = [r["status"] != "ok" for r in rows]
-    cells = {(f, a): sum(1 for r, fl in zip(rows, flagged) if fl == f and bool(r["meets_bar"]) == a)
-             for f in (True, False) for a in (True, False)}
-    gross_ok = sum(1 for r, fl in zip(rows, flagged) if not fl and (r["horizontal_median_m"] or 0) > 2.0)
-    print(f"status x accuracy: flagged & accurate {cells[True, True]}, flagged & not {cells[True, False]}, "
-          f"ok & accurate {cells[False, True]}, ok & not {cells[False, False]}; 'ok' runs > 2 m off: {gross_ok}")
+    ok = [r["status"] == "ok" for r in rows]
+    fa, fn, oa, on = status_cells(ok, [bool(r["meets_bar"]) for r in rows])
+    gross_ok = sum(1 for r, o in zip(rows, ok) if o and (r["horizontal_median_m"] or 0) > 2.0)
+    print(f"status x accuracy: flagged & accurate {fa}, flagged & not {fn}, "
+          f"ok & accurate {oa}, ok & not {on}; 'ok' runs > 2 m off: {gross_ok}")
+
+
+def status_cells(ok: list[bool], accurate: list[bool]) -> tuple[int, int, int, int]:
+    """Runs flagged & accurate, flagged & not, ok & accurate, ok & not."""
+    pairs = list(zip(ok, accurate))
+    return (sum(not o and a for o, a in pairs), sum(not o and not a for o, a in pairs),
+            sum(o and a for o, a in pairs), sum(o and not a for o, a in pairs))
 
 
 def code_state() -> tuple[str, str]:

@@ -28,7 +28,7 @@ import json
 import math
 import statistics
 
-from cities import RESULTS, meets_bar
+from cities import RESULTS, meets_bar, status_cells
 
 
 def rows_of(results: dict, key: str) -> dict[tuple, dict]:
@@ -64,8 +64,7 @@ def summary(rows: list[dict]) -> str:
     h = [figures(r)[0] for r in rows]
     ok = [r.get("status") == "ok" for r in rows]
     bar = [meets_bar(r) for r in rows]
-    conf = [sum(not o and b for o, b in zip(ok, bar)), sum(not o and not b for o, b in zip(ok, bar)),
-            sum(o and b for o, b in zip(ok, bar)), sum(o and not b for o, b in zip(ok, bar))]
+    conf = status_cells(ok, bar)
     geo = math.exp(statistics.mean(math.log(min(v, 1e3)) for v in h))
     return (f"bar {sum(bar):2d}  > 2 m {sum(v > 2 for v in h)}  ok & > 2 m {sum(o and v > 2 for o, v in zip(ok, h))}  "
             f"ok & p95 > 3 m {sum(o and figures(r)[1] > 3 for o, r in zip(ok, rows))}  geo-mean h {geo:.3f} m  "
