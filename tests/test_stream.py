@@ -106,9 +106,42 @@ def test_thinned_points_are_every_kth_row_of_any_format(tmp_path):
     ascii_ply.write_text(f"ply\nformat ascii 1.0\nelement vertex {len(xyz)}\nproperty double x\nproperty double y\n"
                          f"property double z\nend_header\n{body}\n")
     write_ply(tmp_path / "b.ply", xyz)
+    keep = np.sort(np.random.default_rng(4).choice(len(xyz), 900, replace=False))
     for path in (ascii_ply, tmp_path / "b.ply"):
         for step, chunk in ((1, 4096), (3, 1000), (7, 50)):
-            np.testing.assert_array_equal(thinned_points(path, step, chunk), xyz[::step], err_msg=f"{path} {step}")
+            thin, kept = thinned_points(path, step, chunk, keep=keep)
+            np.testing.assert_array_equal(thin, xyz[::step], err_msg=f"{path} {step}")
+            np.testing.assert_array_equal(kept.xyz, xyz[keep], err_msg=f"{path} {step}")
+            assert thinned_points(path, step, chunk)[1] is None
+
+
+class _Shift:
+    """A stand-in warp: every point moved by (1, 2, 3)."""
+
+    def move(self, xyz):
+        return self, None
+
+    def apply(self, xyz):
+        return xyz + [1.0, 2.0, 3.0]
+
+
+def test_truth_rows_kept_by_the_analysis_read_give_the_errors_of_a_second_pass(tmp_path):
+    from toolkit.io.cloud import write_ply
+    from toolkit.stream import _KEPT, analysis_points, kept_rows, row_errors
+
+    xyz = np.random.default_rng(5).uniform(-50, 50, (20_011, 3)).round(3)
+    write_ply(tmp_path / "c.ply", xyz)
+    rows = np.arange(3, len(xyz), 7)
+    truth = xyz[rows] + np.random.default_rng(6).normal(0, 0.3, (len(rows), 3))
+    analysis_points(tmp_path / "c.ply", 5, 4000, keep=rows)
+    np.testing.assert_array_equal(kept_rows(tmp_path / "c.ply", rows), xyz[rows])
+    assert kept_rows(tmp_path / "c.ply", rows[1:]) is None  # other rows: read again
+    kept = row_errors(tmp_path / "c.ply", rows, truth, _Shift(), 1000)
+    _KEPT.clear()  # the same rows read again, a chunk at a time
+    again = row_errors(tmp_path / "c.ply", rows, truth, _Shift(), 1000)
+    for a, b in zip(kept, again):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_allclose(kept[0], np.linalg.norm(xyz[rows] + [1, 2, 3] - truth, axis=1))
 
 
 def test_an_unreachable_scheduler_is_a_one_line_error_and_writes_nothing(tmp_path, capsys):

@@ -136,40 +136,90 @@ def map_spans(fn: Callable[..., Any], parts: list[Any], client: Any = None, shar
 class _Thin:
     path: Path
     step: int
+    keep: np.ndarray | None = None  # other rows (sorted) read in the same pass
 
-    def __call__(self, span: Span, _: Any = None) -> np.ndarray:
-        pick = slice((-span.start) % self.step, None, self.step)
-        return np.ascontiguousarray(open_cloud(self.path).read(span.start, span.count, pick).xyz)
+    def __call__(self, span: Span, _: Any = None) -> tuple[np.ndarray, np.ndarray]:
+        thin = np.arange((-span.start) % self.step, span.count, self.step)
+        if self.keep is None:
+            return np.ascontiguousarray(open_cloud(self.path).read(span.start, span.count, thin).xyz), np.zeros((0, 3))
+        lo, hi = np.searchsorted(self.keep, [span.start, span.start + span.count])
+        pick, where = np.unique(np.concatenate([thin, self.keep[lo:hi] - span.start]), return_inverse=True)
+        xyz = open_cloud(self.path).read(span.start, span.count, pick).xyz
+        return np.ascontiguousarray(xyz[where[:len(thin)]]), np.ascontiguousarray(xyz[where[len(thin):]])
 
 
-def thinned_points(path: Path, step: int, chunk_points: int, client: Any = None) -> np.ndarray:
-    """(⌈N/step⌉, 3) float64: rows 0, step, 2·step, … of the cloud at ``path``, read a chunk at a time."""
+@dataclass(frozen=True)
+class KeptRows:
+    """Rows of the cloud read by the analysis pass besides its own (``rows``, sorted) and their points."""
+
+    path: Path
+    mtime: int
+    rows: np.ndarray
+    xyz: np.ndarray
+
+
+def thinned_points(path: Path, step: int, chunk_points: int, client: Any = None,
+                   keep: np.ndarray | None = None) -> tuple[np.ndarray, KeptRows | None]:
+    """(⌈N/step⌉, 3) float64: rows 0, step, 2·step, … of the cloud at ``path``, read a chunk at a time;
+    with ``keep`` (sorted rows), those rows' points too, read in the same pass."""
     source = open_cloud(path)
     size = max(step, chunk_points // step * step)
     if not source.seekable:  # an ASCII PLY or a PCD: read once, in order, here
-        parts = [chunk.xyz[(-chunk.start) % step::step] for chunk in source.chunks(size)]
+        parts = [_pick(chunk, step, keep) for chunk in source.chunks(size)]
     else:
-        parts = list(map_spans(_Thin(Path(path), step), spans(source.count, size), client))
-    return np.concatenate(parts) if parts else np.zeros((0, 3))
+        parts = list(map_spans(_Thin(Path(path), step, keep), spans(source.count, size), client))
+    if not parts:
+        return np.zeros((0, 3)), None
+    thin = np.concatenate([p[0] for p in parts])
+    kept = None if keep is None else KeptRows(Path(path), Path(path).stat().st_mtime_ns, keep,
+                                               np.concatenate([p[1] for p in parts]))
+    return thin, kept
 
 
-def analysis_points(path: Path, step: int, chunk_points: int, street_scale: float = 1.0) -> np.ndarray:
-    """The analysis cloud in metres (divided by the street scale), read-only, kept for the run's stages."""
-    return _analysis(Path(path), Path(path).stat().st_mtime_ns, step, chunk_points, float(street_scale))
+def _pick(chunk: Any, step: int, keep: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    thin = chunk.xyz[(-chunk.start) % step::step]
+    if keep is None:
+        return thin, np.zeros((0, 3))
+    lo, hi = np.searchsorted(keep, [chunk.start, chunk.start + len(chunk.xyz)])
+    return thin, chunk.xyz[keep[lo:hi] - chunk.start]
+
+
+def analysis_points(path: Path, step: int, chunk_points: int, street_scale: float = 1.0,
+                    keep: np.ndarray | None = None) -> np.ndarray:
+    """The analysis cloud in metres (divided by the street scale), read-only, kept for the run's stages.
+    ``keep``: other rows (sorted) whose input points the same read keeps for ``kept_rows``."""
+    key = None if keep is None else np.asarray(keep, np.int64).tobytes()
+    return _analysis(Path(path), Path(path).stat().st_mtime_ns, step, chunk_points, float(street_scale), key)
 
 
 @functools.lru_cache(maxsize=1)
-def _analysis(path: Path, mtime: int, step: int, chunk_points: int, street_scale: float) -> np.ndarray:
-    pts = _thinned(path, mtime, step, chunk_points)
+def _analysis(path: Path, mtime: int, step: int, chunk_points: int, street_scale: float,
+              keep: bytes | None) -> np.ndarray:
+    pts = _thinned(path, mtime, step, chunk_points, keep)
     if street_scale != 1.0:
         pts = pts / street_scale
     pts.setflags(write=False)
     return pts
 
 
+_KEPT: list[KeptRows] = []  # the kept rows of ``_thinned``'s one cached read
+
+
 @functools.lru_cache(maxsize=1)
-def _thinned(path: Path, mtime: int, step: int, chunk_points: int) -> np.ndarray:
-    return thinned_points(path, step, chunk_points, active_client())
+def _thinned(path: Path, mtime: int, step: int, chunk_points: int, keep: bytes | None) -> np.ndarray:
+    rows = None if keep is None else np.frombuffer(keep, np.int64)
+    pts, kept = thinned_points(path, step, chunk_points, active_client(), rows)
+    _KEPT[:] = [] if kept is None else [kept]
+    return pts
+
+
+def kept_rows(path: Path, rows: np.ndarray) -> np.ndarray | None:
+    """The input points of ``rows`` if the last analysis read of ``path`` kept exactly those, else None."""
+    kept = _KEPT[0] if _KEPT else None
+    if (kept is None or kept.path != Path(path) or kept.mtime != Path(path).stat().st_mtime_ns
+            or not np.array_equal(kept.rows, rows)):
+        return None
+    return kept.xyz
 
 
 # --- errors of the truth rows (test scenes) --------------------------------------------------------
@@ -234,6 +284,12 @@ def row_errors(path: Path, rows: np.ndarray, truth: np.ndarray | NpyRows, warp: 
 
     rows = np.asarray(rows, np.int64)
     err3d, err_h = np.zeros(len(rows)), np.zeros(len(rows))
+    kept = kept_rows(path, rows)
+    if kept is not None:  # read by the analysis pass: no second pass over the cloud
+        for lo in range(0, len(rows), chunk_points):
+            xyz, hi = kept[lo:lo + chunk_points], min(lo + chunk_points, len(rows))
+            err3d[lo:hi], err_h[lo:hi] = point_errors(warp.move(xyz)[0].apply(xyz), np.asarray(truth[lo:hi]))
+        return err3d, err_h
     source = open_cloud(path)
     if not source.seekable:  # an ASCII PLY or a PCD: read once, in order, here
         for chunk in source.chunks(chunk_points):
