@@ -139,9 +139,11 @@ class _Thin:
     keep: np.ndarray | None = None  # other rows (sorted) read in the same pass
 
     def __call__(self, span: Span, _: Any = None) -> tuple[np.ndarray, np.ndarray]:
-        thin = np.arange((-span.start) % self.step, span.count, self.step)
+        first = (-span.start) % self.step
         if self.keep is None:
-            return np.ascontiguousarray(open_cloud(self.path).read(span.start, span.count, thin).xyz), np.zeros((0, 3))
+            pick = slice(first, None, self.step)
+            return np.ascontiguousarray(open_cloud(self.path).read(span.start, span.count, pick).xyz), np.zeros((0, 3))
+        thin = np.arange(first, span.count, self.step)
         lo, hi = np.searchsorted(self.keep, [span.start, span.start + span.count])
         pick, where = np.unique(np.concatenate([thin, self.keep[lo:hi] - span.start]), return_inverse=True)
         xyz = open_cloud(self.path).read(span.start, span.count, pick).xyz
