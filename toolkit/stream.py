@@ -136,16 +136,16 @@ def map_spans(fn: Callable[..., Any], parts: list[Any], client: Any = None, shar
 class _Thin:
     path: Path
     step: int
-    keep: np.ndarray | None = None  # other rows (sorted) read in the same pass
 
-    def __call__(self, span: Span, _: Any = None) -> tuple[np.ndarray, np.ndarray]:
+    def __call__(self, part: tuple[Span, np.ndarray | None], _: Any = None) -> tuple[np.ndarray, np.ndarray]:
+        """Rows 0, step, … of the span, and its rows of ``keep`` (sorted, None: none), read in one pass."""
+        span, keep = part
         first = (-span.start) % self.step
-        if self.keep is None:
+        if keep is None:
             pick = slice(first, None, self.step)
             return np.ascontiguousarray(open_cloud(self.path).read(span.start, span.count, pick).xyz), np.zeros((0, 3))
         thin = np.arange(first, span.count, self.step)
-        lo, hi = np.searchsorted(self.keep, [span.start, span.start + span.count])
-        pick, where = np.unique(np.concatenate([thin, self.keep[lo:hi] - span.start]), return_inverse=True)
+        pick, where = np.unique(np.concatenate([thin, keep - span.start]), return_inverse=True)
         xyz = open_cloud(self.path).read(span.start, span.count, pick).xyz
         return np.ascontiguousarray(xyz[where[:len(thin)]]), np.ascontiguousarray(xyz[where[len(thin):]])
 
@@ -169,7 +169,10 @@ def thinned_points(path: Path, step: int, chunk_points: int, client: Any = None,
     if not source.seekable:  # an ASCII PLY or a PCD: read once, in order, here
         parts = [_pick(chunk, step, keep) for chunk in source.chunks(size)]
     else:
-        parts = list(map_spans(_Thin(Path(path), step, keep), spans(source.count, size), client))
+        todo = [(span, None if keep is None else keep[np.searchsorted(keep, span.start):
+                                                       np.searchsorted(keep, span.start + span.count)])
+                for span in spans(source.count, size)]
+        parts = list(map_spans(_Thin(Path(path), step), todo, client))
     if not parts:
         return np.zeros((0, 3)), None
     thin = np.concatenate([p[0] for p in parts])
