@@ -133,7 +133,8 @@ def test_truth_rows_kept_by_the_analysis_read_give_the_errors_of_a_second_pass(t
     write_ply(tmp_path / "c.ply", xyz)
     rows = np.arange(3, len(xyz), 7)
     truth = xyz[rows] + np.random.default_rng(6).normal(0, 0.3, (len(rows), 3))
-    analysis_points(tmp_path / "c.ply", 5, 4000, keep=rows)
+    np.save(tmp_path / "rows.npy", rows)
+    analysis_points(tmp_path / "c.ply", 5, 4000, keep_file=tmp_path / "rows.npy")
     np.testing.assert_array_equal(kept_rows(tmp_path / "c.ply", rows), xyz[rows])
     assert kept_rows(tmp_path / "c.ply", rows[1:]) is None  # other rows: read again
     kept = row_errors(tmp_path / "c.ply", rows, truth, _Shift(), 1000)
@@ -142,6 +143,10 @@ def test_truth_rows_kept_by_the_analysis_read_give_the_errors_of_a_second_pass(t
     for a, b in zip(kept, again):
         np.testing.assert_array_equal(a, b)
     np.testing.assert_allclose(kept[0], np.linalg.norm(xyz[rows] + [1, 2, 3] - truth, axis=1))
+    np.save(tmp_path / "bad.npy", rows[::-1])  # not increasing: nothing kept, the analysis read as ever
+    np.testing.assert_array_equal(analysis_points(tmp_path / "c.ply", 5, 4000, keep_file=tmp_path / "bad.npy"),
+                                  xyz[::5])
+    assert kept_rows(tmp_path / "c.ply", rows) is None and not _KEPT
 
 
 def test_an_unreachable_scheduler_is_a_one_line_error_and_writes_nothing(tmp_path, capsys):

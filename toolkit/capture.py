@@ -80,19 +80,9 @@ class StreetCapture:
             return load_points(self.scene, "street_cloud", WHO)
         from toolkit.stream import analysis_points
 
-        return analysis_points(self.cloud_path, self.step, self.chunk_points, self.scale.value, self._truth_rows())
-
-    def _truth_rows(self) -> np.ndarray | None:
-        """A test scene's truth rows, read by the analysis pass too: its evaluation then does not read
-        the whole cloud a second time. None when absent or not increasing rows of the cloud (evaluate
-        reports such a file)."""
-        if not self.scene.has("truth_street_rows"):
-            return None
-        from toolkit.scene import load_array
-
-        rows = np.asarray(load_array(self.scene, "truth_street_rows"), np.int64)
-        ok = rows.ndim == 1 and len(rows) > 0 and rows[0] >= 0 and rows[-1] < self.cloud_points
-        return rows if ok and np.all(np.diff(rows) > 0) else None
+        # a test scene's truth rows are read in the same pass: its evaluation then does not read the cloud again
+        truth_rows = self.scene.files.truth_street_rows if self.scene.has("truth_street_rows") else None
+        return analysis_points(self.cloud_path, self.step, self.chunk_points, self.scale.value, truth_rows)
 
     @property
     def sparse(self) -> SparseModel | None:

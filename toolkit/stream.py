@@ -190,16 +190,16 @@ def _pick(chunk: Any, step: int, keep: np.ndarray | None) -> tuple[np.ndarray, n
 
 
 def analysis_points(path: Path, step: int, chunk_points: int, street_scale: float = 1.0,
-                    keep: np.ndarray | None = None) -> np.ndarray:
+                    keep_file: Path | None = None) -> np.ndarray:
     """The analysis cloud in metres (divided by the street scale), read-only, kept for the run's stages.
-    ``keep``: other rows (sorted) whose input points the same read keeps for ``kept_rows``."""
-    key = None if keep is None else np.asarray(keep, np.int64).tobytes()
-    return _analysis(Path(path), Path(path).stat().st_mtime_ns, step, chunk_points, float(street_scale), key)
+    ``keep_file``: a .npy of increasing row numbers whose input points the same read keeps (``kept_rows``)."""
+    keep = None if keep_file is None else (Path(keep_file), Path(keep_file).stat().st_mtime_ns)
+    return _analysis(Path(path), Path(path).stat().st_mtime_ns, step, chunk_points, float(street_scale), keep)
 
 
 @functools.lru_cache(maxsize=1)
 def _analysis(path: Path, mtime: int, step: int, chunk_points: int, street_scale: float,
-              keep: bytes | None) -> np.ndarray:
+              keep: tuple[Path, int] | None) -> np.ndarray:
     pts = _thinned(path, mtime, step, chunk_points, keep)
     if street_scale != 1.0:
         pts = pts / street_scale
@@ -211,11 +211,22 @@ _KEPT: list[KeptRows] = []  # the kept rows of ``_thinned``'s one cached read
 
 
 @functools.lru_cache(maxsize=1)
-def _thinned(path: Path, mtime: int, step: int, chunk_points: int, keep: bytes | None) -> np.ndarray:
-    rows = None if keep is None else np.frombuffer(keep, np.int64)
+def _thinned(path: Path, mtime: int, step: int, chunk_points: int, keep: tuple[Path, int] | None) -> np.ndarray:
+    rows = None if keep is None else _rows_to_keep(keep[0], open_cloud(path).count)
     pts, kept = thinned_points(path, step, chunk_points, active_client(), rows)
     _KEPT[:] = [] if kept is None else [kept]
     return pts
+
+
+def _rows_to_keep(path: Path, count: int) -> np.ndarray | None:
+    """The increasing row numbers of the .npy at ``path`` (rows of a ``count``-point cloud); None when
+    it is not such a file (whoever reads it for itself reports that)."""
+    try:
+        rows = np.asarray(np.load(path, allow_pickle=False), np.int64)
+    except Exception:
+        return None
+    ok = rows.ndim == 1 and len(rows) > 0 and rows[0] >= 0 and rows[-1] < count
+    return rows if ok and np.all(np.diff(rows) > 0) else None
 
 
 def kept_rows(path: Path, rows: np.ndarray) -> np.ndarray | None:
