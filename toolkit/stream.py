@@ -284,11 +284,15 @@ class _RowErrors:
     path: Path
 
     def __call__(self, part: tuple[Span, np.ndarray, np.ndarray], warp: Any) -> tuple[np.ndarray, np.ndarray]:
-        from toolkit.evaluation.metrics import point_errors
-
         span, rows, truth = part
-        xyz = open_cloud(self.path).read(span.start, span.count, rows - span.start).xyz
-        return point_errors(warp.move(xyz)[0].apply(xyz), np.asarray(truth))
+        return _moved_errors(warp, open_cloud(self.path).read(span.start, span.count, rows - span.start).xyz, truth)
+
+
+def _moved_errors(warp: Any, xyz: np.ndarray, truth: Any) -> tuple[np.ndarray, np.ndarray]:
+    """(3D, horizontal) error of input points ``xyz`` moved by ``warp`` against ``truth`` (one row each)."""
+    from toolkit.evaluation.metrics import point_errors
+
+    return point_errors(warp.move(xyz)[0].apply(xyz), np.asarray(truth))
 
 
 def row_errors(path: Path, rows: np.ndarray, truth: np.ndarray | NpyRows, warp: Any, chunk_points: int,
@@ -296,22 +300,19 @@ def row_errors(path: Path, rows: np.ndarray, truth: np.ndarray | NpyRows, warp: 
     """(3D, horizontal) error of input rows ``rows`` (sorted) of the cloud at ``path`` moved by ``warp``
     (a ``PointWarp`` taking input street-frame units) against ``truth`` (one row each; ``NpyRows`` are
     read a chunk at a time). Each chunk's errors go straight into the result."""
-    from toolkit.evaluation.metrics import point_errors
-
     rows = np.asarray(rows, np.int64)
     err3d, err_h = np.zeros(len(rows)), np.zeros(len(rows))
     kept = kept_rows(path, rows)
     if kept is not None:  # read by the analysis pass: no second pass over the cloud
         for lo in range(0, len(rows), chunk_points):
-            xyz, hi = kept[lo:lo + chunk_points], min(lo + chunk_points, len(rows))
-            err3d[lo:hi], err_h[lo:hi] = point_errors(warp.move(xyz)[0].apply(xyz), np.asarray(truth[lo:hi]))
+            sl = slice(lo, lo + chunk_points)
+            err3d[sl], err_h[sl] = _moved_errors(warp, kept[sl], truth[sl])
         return err3d, err_h
     source = open_cloud(path)
     if not source.seekable:  # an ASCII PLY or a PCD: read once, in order, here
         for chunk in source.chunks(chunk_points):
             lo, hi = np.searchsorted(rows, [chunk.start, chunk.start + len(chunk.xyz)])
-            xyz = chunk.xyz[rows[lo:hi] - chunk.start]
-            err3d[lo:hi], err_h[lo:hi] = point_errors(warp.move(xyz)[0].apply(xyz), np.asarray(truth[lo:hi]))
+            err3d[lo:hi], err_h[lo:hi] = _moved_errors(warp, chunk.xyz[rows[lo:hi] - chunk.start], truth[lo:hi])
         return err3d, err_h
     parts, at = [], []
     for span in spans(source.count, chunk_points):
