@@ -89,7 +89,9 @@ class RoutePlacement:
     window_scores (W,), link_m (W-1,) disagreement of neighbouring windows, top_share: share of
     windows whose chosen placement is also their best alone, link_agree_m (W-1,) the disagreement
     each link may have before the chain pays its full cost (beyond it, one of the two windows is
-    placed elsewhere than the other: a broken link)."""
+    placed elsewhere than the other: a broken link), alone_m (W,) how far each window's best
+    placement alone puts its cameras from where the chosen one does, and overruled_m: beyond this
+    the chain has overruled the window's own façades (its chosen placement is a neighbour's)."""
 
     prior: GpsPrior | None
     windows: tuple[Placement, ...]
@@ -99,6 +101,8 @@ class RoutePlacement:
     top_share: float
     reason: str = ""
     link_agree_m: np.ndarray | None = None
+    alone_m: np.ndarray | None = None
+    overruled_m: float = 0.0
 
     def figures(self) -> dict:
         """Truth-free figures for the run's self-assessment (JSON-able, rounded)."""
@@ -108,7 +112,11 @@ class RoutePlacement:
                 "link_max_m": round(float(self.link_m.max()), 3) if len(self.link_m) else None,
                 "links_broken": None if self.link_agree_m is None else int((self.link_m > self.link_agree_m).sum()),
                 "links": len(self.link_m),
-                "best_alone_share": round(self.top_share, 4)}
+                "best_alone_share": round(self.top_share, 4),
+                "overruled_share": None if self.alone_m is None or not len(self.alone_m)
+                else round(float(np.mean(self.alone_m > self.overruled_m)), 4),
+                "alone_max_m": None if self.alone_m is None or not len(self.alone_m)
+                else round(float(self.alone_m.max()), 3)}
 
     def chain_value(self, link_cost: float) -> float:
         """The chain's objective per window: (Σ score − link_cost·Σ min(link / agree, 1)) / windows
@@ -123,7 +131,8 @@ class RoutePlacement:
         links = " ".join(f"{v:.1f}" for v in self.link_m)
         used = "used" if self.prior is not None else f"not used: {self.reason}"
         return (f"route placement {used}; {len(self.windows)} windows, scores [{scores}], "
-                f"neighbour disagreement m [{links}], best alone in {self.top_share:.0%}")
+                f"neighbour disagreement m [{links}], best alone in {self.top_share:.0%}"
+                + ("" if self.alone_m is None else f", own best placement m [{' '.join(f'{v:.0f}' for v in self.alone_m)}]"))
 
 
 def capture_order(image_names) -> np.ndarray:
@@ -383,18 +392,35 @@ def place_route(street: StreetSegments, overview: OverviewSegments, cameras_xy: 
     chain_gps = {"anchors": found.anchors, "gps_tolerance_m": track.tolerance_m} if track is not None else {}
     pick, link_m = _chain(windows, links, cfg, np.diff(centres), **chain_gps)
     agree = agree_m(cfg, np.diff(centres))
-    for _ in range(2):  # a window off the chain tries its chosen neighbours' placements, then the chain again
+    # a window off the chain tries its chosen neighbours' placements, then the chain again; a group
+    # of windows placed elsewhere comes back one window per round, so rounds go on while the chain moves
+    for _ in range(len(windows)):
         if not _retry_off_chain(windows, found.points, pick, link_m > agree, maps.fine, cfg):
             break
-        pick, link_m = _chain(windows, links, cfg, np.diff(centres), **chain_gps)
+        before, (pick, link_m) = pick, _chain(windows, links, cfg, np.diff(centres), **chain_gps)
+        if pick == before:
+            break
     chosen = tuple(windows[w][h] for w, h in enumerate(pick))
     scores = np.array([p.score for p in chosen])
     top_share = float(np.mean([h == 0 for h in pick]))
+    alone = _alone_m(windows, chosen, cameras_xy, arc, centres, cfg.window_m)
+    told = {"link_agree_m": agree, "alone_m": alone, "overruled_m": cfg.agree_m}
     if np.median(scores) < cfg.min_score:
         return RoutePlacement(None, chosen, centres, scores, link_m, top_share,
-                              f"median window score {np.median(scores):.2f} < {cfg.min_score}", agree)
+                              f"median window score {np.median(scores):.2f} < {cfg.min_score}", **told)
     prior = _segment_prior(street, seg, s_pt, chosen, centres, cfg)
-    return RoutePlacement(prior, chosen, centres, scores, link_m, top_share, link_agree_m=agree)
+    return RoutePlacement(prior, chosen, centres, scores, link_m, top_share, **told)
+
+
+def _alone_m(windows: list[list[Placement]], chosen: tuple[Placement, ...], cameras_xy: np.ndarray,
+             arc: np.ndarray, centres: np.ndarray, window_m: float) -> np.ndarray:
+    """(W,) RMS distance between where each window's best placement alone (its best score) and its
+    chosen one put the window's cameras."""
+    out = np.zeros(len(chosen))
+    for w, (found, p) in enumerate(zip(windows, chosen)):
+        cams = _cameras_between(cameras_xy, arc, centres[w] - window_m / 2, centres[w] + window_m / 2)
+        out[w] = np.sqrt(np.mean(np.sum((found[0].apply(cams) - p.apply(cams)) ** 2, axis=1)))
+    return out
 
 
 @dataclass(frozen=True)
