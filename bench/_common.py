@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import resource
 import sys
 import time
@@ -13,6 +14,9 @@ if TYPE_CHECKING:
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+# the .venv's editable install points at the checkout it was made in: a bench run from a git worktree
+# (and the `crossview` commands it starts) must import this checkout's code instead
+os.environ["PYTHONPATH"] = os.pathsep.join([str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])])
 
 
 def scene(preset: str, seed: int = 0, **overrides) -> Path:

@@ -16,8 +16,12 @@ counts once), and prints:
   inaccurate runs flagged, then the middle of the values that do equally well (the confidence
   limit is the rule's catch-all for runs no hard limit names; the full grid above takes minutes on
   several hundred runs, ``--confidence-only`` skips it).
+- ``--limit NAME``: a leave-one-city-out choice of that one hard limit alone, with the balanced
+  objective: every gross failure flagged, at most a tenth of the accurate runs flagged, then the
+  fewest runs judged wrong either way (a run that misses the bar's p95 counts as inaccurate).
 
-usage: python bench/status_calibration.py [--out-dir data/cities/out ...] [--all] [--confidence-only]
+usage: python bench/status_calibration.py [--out-dir data/cities/out ...] [--all [--holdout2]]
+       [--confidence-only | --limit NAME]
 """
 
 from __future__ import annotations
@@ -102,41 +106,54 @@ def tally(runs: list[dict], flagged: list[bool]) -> tuple[int, int, int]:
             sum(not r["accurate"] and f for r, f in zip(runs, flagged)))
 
 
-def choose_confidence(runs: list[dict], base, grid: list[float]) -> tuple[float, tuple]:
-    """``min_confidence`` on ``runs``: no gross failure missed, fewest accurate runs flagged, most
-    inaccurate runs flagged; among the values that do equally well, the middle one (farthest from
-    the runs that decided the range)."""
+def choose_value(runs: list[dict], base, name: str, grid: list[float], balanced: bool = False) -> tuple[float, tuple]:
+    """The value of the rule's field ``name`` on ``runs``: no gross failure missed, then fewest
+    accurate runs flagged, then most inaccurate runs flagged (``balanced``: no gross failure missed,
+    at most a tenth of the accurate runs flagged, then the fewest runs judged wrong either way, an
+    inaccurate run being one that misses the bar's median or p95); among the values that do equally
+    well, the middle one (farthest from the runs that decided the range)."""
+    n_accurate = sum(r["accurate"] for r in runs)
+    n_inaccurate = len(runs) - n_accurate
     keys = []
     for value in grid:
-        missed, false, caught = tally(runs, flags(dataclasses.replace(base, min_confidence=value), runs))
-        keys.append((missed, false, -caught))
+        missed, false, caught = tally(runs, flags(dataclasses.replace(base, **{name: value}), runs))
+        keys.append((missed, false > 0.1 * n_accurate, false + n_inaccurate - caught) if balanced
+                    else (missed, false, -caught))
     best = min(keys)
     equal = [v for v, k in zip(grid, keys) if k == best]
     middle = (equal[0] + equal[-1]) / 2
     return min(equal, key=lambda v: (round(abs(v - middle), 6), v)), best + ((equal[0], equal[-1]),)
 
 
-def confidence_only(runs: list[dict], base) -> None:
-    grid = [round(v, 2) for v in np.arange(0.3, 0.801, 0.05)]
+def loco_one(runs: list[dict], base, name: str, grid: list[float], balanced: bool = False) -> None:
+    """``choose_value`` leave one city out: each city judged with the value chosen on the others."""
     cities = sorted({r["city"] for r in runs})
     held: dict[int, bool] = {}
-    print(f"\nmin_confidence alone, leave one city out (grid {grid[0]}-{grid[-1]}; "
+    objective = "balanced errors" if balanced else "fewest false flags"
+    print(f"\n{name} alone, leave one city out (grid {grid[0]}-{grid[-1]}; {objective}; "
           "the other limits at their defaults):")
     for city in cities:
-        value, key = choose_confidence([r for r in runs if r["city"] != city], base, grid)
+        value, key = choose_value([r for r in runs if r["city"] != city], base, name, grid, balanced)
         test = [r for r in runs if r["city"] == city]
-        held.update(zip(map(id, test), flags(dataclasses.replace(base, min_confidence=value), test)))
-        print(f"  {city:12s} chosen {value:.2f}  train missed {key[0]}, false flags {key[1]}, inaccurate flagged "
-              f"{-key[2]} (equally good {key[3][0]:.2f}-{key[3][1]:.2f}); "
+        held.update(zip(map(id, test), flags(dataclasses.replace(base, **{name: value}), test)))
+        print(f"  {city:12s} chosen {value:g}  train key {key[:-1]} (equally good {key[-1][0]:g}-{key[-1][1]:g}); "
               f"held out: {confusion(test, [held[id(r)] for r in test])}")
     print(f"held-out, all cities: {confusion(runs, [held[id(r)] for r in runs])}")
-    value, key = choose_confidence(runs, base, grid)
-    print(f"chosen on all cities: {value:.2f}, equally good {key[3][0]:.2f}-{key[3][1]:.2f} "
-          f"({confusion(runs, flags(dataclasses.replace(base, min_confidence=value), runs))})")
+    value, key = choose_value(runs, base, name, grid, balanced)
+    print(f"chosen on all cities: {value:g}, equally good {key[-1][0]:g}-{key[-1][1]:g} "
+          f"({confusion(runs, flags(dataclasses.replace(base, **{name: value}), runs))})")
     for r in runs:
         if held[id(r)] and r["accurate"]:
             print(f"  held-out flagged accurate run: {r['dir']}/{r['name']} (confidence "
                   f"{base.judge(r['figures']).confidence:.2f})")
+
+
+def confidence_only(runs: list[dict], base) -> None:
+    loco_one(runs, base, "min_confidence", [round(v, 2) for v in np.arange(0.3, 0.801, 0.05)])
+
+
+# one hard limit chosen alone (--limit NAME): its grid
+LIMIT_GRIDS = {"max_route_overruled_share": [round(v, 2) for v in np.arange(0.0, 1.001, 0.05)]}
 
 
 def main() -> int:
@@ -146,10 +163,14 @@ def main() -> int:
     ap.add_argument("--all", action="store_true",
                     help="every output folder of data/cities and data/cities-holdout (whole or slimmed)")
     ap.add_argument("--confidence-only", action="store_true", help="only the min_confidence choice")
+    ap.add_argument("--limit", choices=sorted(LIMIT_GRIDS),
+                    help="only this hard limit, chosen alone with the balanced objective")
+    ap.add_argument("--holdout2", action="store_true", help="with --all: data/cities-holdout2 too")
     args = ap.parse_args()
     from toolkit.status import StatusRule
 
-    everything = [d for matrix in ("cities", "cities-holdout") for d in sorted((REPO / "data" / matrix).glob("out*/"))]
+    matrices = ("cities", "cities-holdout") + (("cities-holdout2",) if args.holdout2 else ())
+    everything = [d for matrix in matrices for d in sorted((REPO / "data" / matrix).glob("out*/"))]
     out_dirs = (args.out_dir or []) + (everything if args.all else [])
     out_dirs = out_dirs or [REPO / "data" / "cities" / "out"]
     runs = load_all(out_dirs)
@@ -164,6 +185,9 @@ def main() -> int:
             print(f"  unflagged gross failure: {r['dir']}/{r['name']} (h median {r['h']:.1f} m)")
         if r["accurate"] and f:
             print(f"  flagged accurate run: {r['dir']}/{r['name']}: {base.judge(r['figures']).reasons[:1]}")
+    if args.limit:
+        loco_one(runs, base, args.limit, LIMIT_GRIDS[args.limit], balanced=True)
+        return 0
     if args.confidence_only:
         confidence_only(runs, base)
         return 0

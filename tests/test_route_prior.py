@@ -51,7 +51,7 @@ def test_the_route_is_placed_within_metres_of_the_truth(tiny, source):
     # the centroid is the mean of the façade cells, the truth the mean of all façade points: a few metres
     assert np.nanmedian(err) < 4.0
     assert placed.window_scores.min() > RoutePriorConfig().min_score
-    assert placed.figures()["links_broken"] == 0
+    assert placed.figures()["links_broken"] == 0 and placed.figures()["overruled_share"] == 0.0
 
 
 def test_a_window_placed_apart_from_its_neighbours_is_a_broken_link():
@@ -63,6 +63,23 @@ def test_a_window_placed_apart_from_its_neighbours_is_a_broken_link():
     placed = RoutePlacement(None, (), centres, np.full(4, 0.6), links, 1.0, link_agree_m=agree_m(cfg, np.diff(centres)))
     assert agree_m(cfg, 125.0) > 20.0
     assert placed.figures()["links_broken"] == 1 and placed.figures()["links"] == 3
+
+
+def test_a_window_whose_facades_fit_best_elsewhere_is_overruled():
+    """alone_m: how far a window's best placement alone (its first, best-scoring candidate) puts its
+    cameras from the chosen one; beyond agree_m the chain has overruled the window's own façades."""
+    from toolkit.matching.route_prior import Placement, _alone_m
+
+    cams = np.stack([np.linspace(0.0, 500.0, 101), np.zeros(101)], axis=1)
+    arc = np.linspace(0.0, 500.0, 101)
+    here = Placement(theta=0.0, t=np.zeros(2), pivot=np.zeros(2), score=0.7)
+    away = Placement(theta=0.0, t=np.array([0.0, 40.0]), pivot=np.zeros(2), score=0.6)
+    windows = [[here, away], [away, here]]   # best first: window 1's own façades prefer 40 m away
+    alone = _alone_m(windows, (here, here), cams, arc, np.array([125.0, 250.0]), 250.0)
+    assert alone == pytest.approx([0.0, 40.0])
+    placed = RoutePlacement(None, (here, here), np.array([125.0, 250.0]), np.array([0.7, 0.6]), np.array([0.0]),
+                            0.5, alone_m=alone, overruled_m=RoutePriorConfig().agree_m)
+    assert placed.figures()["overruled_share"] == 0.5 and placed.figures()["alone_max_m"] == 40.0
 
 
 def test_a_street_from_elsewhere_is_not_placed(tiny):

@@ -85,6 +85,20 @@ def test_each_hard_reason_fires_first(change, fragment):
     assert fragment in verdict.reasons[0], verdict.reasons
 
 
+NO_GPS = {**GOOD, "gps_fixes": None, "gps_sigma_m": None, "gps_residual_median_m": None, "gps_residual_p90_m": None}
+
+
+def test_a_route_placement_that_overrules_half_its_windows_is_unreliable_without_gps():
+    """Without GPS, windows whose own façades fit best elsewhere than the chain put them: one in
+    three is ok (accurate short routes have it), half is not; with GPS the fixes may overrule them."""
+    rule = StatusRule()
+    half = {"prior_overruled_share": 0.5455, "prior_alone_max_m": 684.8}
+    verdict = rule.judge({**NO_GPS, **half})
+    assert verdict.status == "unreliable" and "in 55% of the route placement's windows" in verdict.reasons[0]
+    assert rule.judge({**NO_GPS, "prior_overruled_share": 0.3333}).status == "ok"
+    assert rule.judge({**GOOD, **half}).status == "ok"
+
+
 def test_neighbours_a_metre_apart_are_ok():
     verdict = StatusRule().judge({**GOOD, "neighbour_gap_median_m": 1.3, "neighbour_gap_p90_m": 3.5})
     assert verdict.status == "ok", verdict.reasons

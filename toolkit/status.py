@@ -71,6 +71,9 @@ class StatusRule:
     max_outside_grid_share: float = 0.5
     max_segment_scale_deviation: float = 0.035   # |median segment scale − 1|: drift of ±3 % moves it ≤ 1.5 %
     max_route_links_broken: int = 0     # route placement (no GPS): neighbouring windows placed apart
+    # route placement without GPS: windows whose own best placement is elsewhere than the chain's
+    # (one window in three is, on accurate short routes); chosen leave-one-city-out
+    max_route_overruled_share: float = 0.35
     # the warp bridges route gaps of 100 m or more between cameras that see a registered façade
     # (warp.inverse_log bridge_min_gap_m); a camera inside such a gap is up to half of it from the nearest
     # one, and there the registration rests on the trajectory's own drift
@@ -214,6 +217,15 @@ def _hard_route_chain(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
             f"{f.get('prior_link_max_m') or 0:.0f} m): part of the route may be matched to the wrong buildings")
 
 
+def _hard_route_overruled(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
+    s = f.get("prior_overruled_share")
+    if s is None or s <= rule.max_route_overruled_share or f.get("gps_fixes"):  # fixes may rightly overrule
+        return None
+    return (f"in {s:.0%} of the route placement's windows the façades alone fit best elsewhere (up to "
+            f"{f.get('prior_alone_max_m') or 0:.0f} m away) than the placement chosen with their neighbours "
+            f"(at most {rule.max_route_overruled_share:.0%} expected): the route may be matched ambiguously")
+
+
 def _hard_segment_scale(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
     m = f.get("segment_scale_median")
     if m is None or abs(m - 1.0) <= rule.max_segment_scale_deviation:
@@ -253,7 +265,7 @@ HARD_CHECKS = {"gps_residual_ratio": _hard_gps, "facade_support_share": _hard_fa
                "facade_distance_median_m": _hard_facade_distance,
                "outside_grid_share": _hard_outside, "neighbour_disagree_share": _hard_neighbours,
                "neighbour_gap_median_m": _hard_neighbour_gap,
-               "prior_links_broken": _hard_route_chain,
+               "prior_links_broken": _hard_route_chain, "prior_overruled_share": _hard_route_overruled,
                "camera_height_median_m": _hard_camera_height, "registered_point_share": _hard_registered,
                "segment_scale_median": _hard_segment_scale, "camera_gap_p90_m": _hard_camera_gap}
 

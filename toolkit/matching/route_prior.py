@@ -392,9 +392,10 @@ def place_route(street: StreetSegments, overview: OverviewSegments, cameras_xy: 
     chain_gps = {"anchors": found.anchors, "gps_tolerance_m": track.tolerance_m} if track is not None else {}
     pick, link_m = _chain(windows, links, cfg, np.diff(centres), **chain_gps)
     agree = agree_m(cfg, np.diff(centres))
-    # a window off the chain tries its chosen neighbours' placements, then the chain again; a group
-    # of windows placed elsewhere comes back one window per round, so rounds go on while the chain moves
-    for _ in range(len(windows)):
+    # a window off the chain tries its chosen neighbours' placements, then the chain again. Without GPS a
+    # group of windows placed elsewhere comes back one window per round, so rounds go on while the chain
+    # moves; with GPS every window also has the track's placement (two rounds, as measured)
+    for _ in range(len(windows) if track is None else 2):
         if not _retry_off_chain(windows, found.points, pick, link_m > agree, maps.fine, cfg):
             break
         before, (pick, link_m) = pick, _chain(windows, links, cfg, np.diff(centres), **chain_gps)
