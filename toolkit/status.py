@@ -219,7 +219,8 @@ def _hard_route_chain(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
 
 def _hard_route_overruled(rule: StatusRule, f: Mapping[str, Any]) -> str | None:
     s = f.get("prior_overruled_share")
-    if s is None or s <= rule.max_route_overruled_share or f.get("gps_fixes"):  # fixes may rightly overrule
+    # GPS fixes may rightly overrule a window; a placement the run did not use did not place anything
+    if s is None or s <= rule.max_route_overruled_share or f.get("gps_fixes") or f.get("prior_used") is False:
         return None
     return (f"in {s:.0%} of the route placement's windows the façades alone fit best elsewhere (up to "
             f"{f.get('prior_alone_max_m') or 0:.0f} m away) than the placement chosen with their neighbours "
