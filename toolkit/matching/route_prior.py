@@ -106,6 +106,7 @@ class RoutePlacement:
 
     def figures(self) -> dict:
         """Truth-free figures for the run's self-assessment (JSON-able, rounded)."""
+        alone = self.alone_m if self.alone_m is not None and len(self.alone_m) else None
         return {"used": self.prior is not None, "reason": self.reason or None, "windows": len(self.windows),
                 "score_median": round(float(np.median(self.window_scores)), 4) if len(self.window_scores) else None,
                 "score_min": round(float(self.window_scores.min()), 4) if len(self.window_scores) else None,
@@ -113,10 +114,8 @@ class RoutePlacement:
                 "links_broken": None if self.link_agree_m is None else int((self.link_m > self.link_agree_m).sum()),
                 "links": len(self.link_m),
                 "best_alone_share": round(self.top_share, 4),
-                "overruled_share": None if self.alone_m is None or not len(self.alone_m)
-                else round(float(np.mean(self.alone_m > self.overruled_m)), 4),
-                "alone_max_m": None if self.alone_m is None or not len(self.alone_m)
-                else round(float(self.alone_m.max()), 3)}
+                "overruled_share": None if alone is None else round(float(np.mean(alone > self.overruled_m)), 4),
+                "alone_max_m": None if alone is None else round(float(alone.max()), 3)}
 
     def chain_value(self, link_cost: float) -> float:
         """The chain's objective per window: (Σ score − link_cost·Σ min(link / agree, 1)) / windows
