@@ -153,7 +153,9 @@ def confidence_only(runs: list[dict], base) -> None:
 
 
 # one hard limit chosen alone (--limit NAME): its grid
-LIMIT_GRIDS = {"max_route_overruled_share": [round(v, 2) for v in np.arange(0.0, 1.001, 0.05)]}
+LIMIT_GRIDS = {"max_route_overruled_share": [round(v, 2) for v in np.arange(0.0, 1.001, 0.05)],
+               "max_camera_gap_p90_m": [float(v) for v in range(10, 101, 5)],
+               "min_registered_point_share": [round(v, 2) for v in np.arange(0.3, 0.951, 0.05)]}
 
 
 def main() -> int:
