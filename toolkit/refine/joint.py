@@ -47,6 +47,7 @@ class JointParams:
     max_points: int = 4000
     truncate_m: float = 3.0
     inlier_m: float = 1.0
+    shift_penalty: float = 0.0       # cost per metre of shift from the seed (m of chamfer per m)
     segment_points: int = 0          # at most this many thinned footprint points per segment (0: all)
     kernel: str = "box"              # "box": every segment in the window in full; "tricube": a share of its
                                      # points falling with its route distance, (1 − (Δs/window)³)³
@@ -66,10 +67,11 @@ class JointConfig(ParamGroup):
         "box", description="weighting by route distance Δs: 'box' (all equal) or 'tricube' ((1 − (Δs/window)³)³)")
 
     def search(self, *, rotation_step_deg: float, cell_m: float, max_points: int, truncate_m: float,
-               inlier_m: float) -> JointParams:
-        """The pass's ``JointParams``: this group with the search's step, cell, cap and distances."""
+               inlier_m: float, shift_penalty: float) -> JointParams:
+        """The pass's ``JointParams``: this group with the search's step, cell, cap, distances and shift penalty."""
         return JointParams(**self.model_dump(), rotation_step_deg=rotation_step_deg, cell_m=cell_m,
-                           max_points=max_points, truncate_m=truncate_m, inlier_m=inlier_m)
+                           max_points=max_points, truncate_m=truncate_m, inlier_m=inlier_m,
+                           shift_penalty=shift_penalty)
 
 
 class OutlineLabels:
@@ -152,7 +154,7 @@ def joint_transforms(footprints: dict[int, np.ndarray], T2d: np.ndarray, route_s
     pivot, so that the neighbours keep their distances at segment i's scale."""
     sp = SearchParams.model_construct(rotation_range_deg=p.rotation_deg, rotation_step_deg=p.rotation_step_deg,
                                       margin_m=0.0, truncate_m=p.truncate_m, inlier_m=p.inlier_m,
-                                      shift_penalty=0.0, subpixel=True)   # not validated: any rotation
+                                      shift_penalty=p.shift_penalty, subpixel=True)   # not validated: any rotation
     idx = np.array(sorted(i for i in footprints if np.isfinite(route_s[i])), np.int64)
     out = np.array(T2d, np.float64, copy=True)
     outlines = outlines if outlines is not None else AllOutlines(grid, label_image, p.truncate_m)
