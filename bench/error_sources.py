@@ -12,9 +12,11 @@ The street labels are recomputed by the run's own street step (recipe.yaml), ~10
 blended classes are also split by the route distance to the nearest registered segment (route
 position = arc length of the truth camera track at the camera nearest to the point's true XY).
 Printed per run: each class's point share, horizontal median / p95, and its share of the points
-over 1.5 m (what makes the p95 miss the bar); the background points by route gap; and the points
+over 1.5 m (what makes the p95 miss the bar); the background points by route gap; the points
 carried by a registered segment moved by that segment's own transform (transforms.json) beside the
-same points as registered (after the blend and the bundle adjustment).
+same points as registered (after the blend and the bundle adjustment); and every point by where
+along the route its capturing camera was (truth/drift.npz ``camera_index``; tenths of the route, the
+first and last twentieth apart: the ends of a route have neighbours on one side only).
 The scene: --scene, else the data/cities scene whose name starts the run folder's name.
 """
 
@@ -33,6 +35,7 @@ from _common import REPO, truth_centres  # noqa: F401  (REPO puts the repository
 BAD_SEGMENT_M = 1.0
 OVER_M = 1.5
 GAP_BINS_M = (0.0, 10.0, 30.0, 100.0, np.inf)
+ROUTE_BINS = (0.0, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95, 1.0 + 1e-9)
 
 
 def scene_of(out: Path, given: str | None) -> Path:
@@ -64,6 +67,18 @@ def street_step(out: Path, scene: Path):
     plan = build(load_recipe(out / "recipe.yaml"), scene)
     spec, stage = next((sp, st) for sp, st in plan.stages if sp.name == "street")
     return stage(plan.scene, plan.capture, NullObserver()), load_points(plan.scene)
+
+
+def captured_route_fraction(scene: Path) -> np.ndarray | None:
+    """(n,) route fraction (0 start, 1 end) of each point's capturing camera, None without
+    truth/drift.npz."""
+    drift = scene / "truth" / "drift.npz"
+    if not drift.is_file():
+        return None
+    camera = np.load(drift)["camera_index"]
+    cams = truth_centres(scene / "truth" / "cameras.txt")[:, :2]
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(cams, axis=0), axis=1))])
+    return arc[camera] / max(arc[-1], 1e-9)
 
 
 def own_transform_errors(street, points: np.ndarray, truth: np.ndarray, segments: list[dict]) -> np.ndarray:
@@ -102,6 +117,7 @@ def classify(out: Path, scene: Path) -> dict:
     k = np.clip(np.searchsorted(reg_s, s), 1, len(reg_s) - 1) if len(reg_s) > 1 else np.zeros(len(s), int)
     gap = np.minimum(np.abs(s - reg_s[k]), np.abs(s - reg_s[np.maximum(k - 1, 0)]))
     return {"h": h, "cls": cls, "gap": gap, "own": own_transform_errors(street, points, truth, segments),
+            "captured_at": captured_route_fraction(scene),
             "n_bad_segments": int(sum(m > BAD_SEGMENT_M for m in seg_median.values())), "n_valid": len(valid)}
 
 
@@ -127,6 +143,14 @@ def report(out: Path, r: dict) -> None:
         print(f"  carried by a registered segment ({m.mean():.0%} of the points): own transform median "
               f"{np.median(own[m]):.2f} p95 {np.percentile(own[m], 95):.2f} m; as registered median "
               f"{np.median(h[m]):.2f} p95 {np.percentile(h[m], 95):.2f} m")
+    at = r["captured_at"]
+    if at is not None:
+        print("  captured along the route (fraction)")
+        for lo, hi in zip(ROUTE_BINS[:-1], ROUTE_BINS[1:]):
+            m = (at >= lo) & (at < hi)
+            if m.any():
+                print(f"    {lo:4.2f}-{min(hi, 1.0):4.2f}{m.mean():>12.1%}{np.median(h[m]):>8.2f}"
+                      f"{np.percentile(h[m], 95):>8.2f}{(over & m).sum() / max(over.sum(), 1):>11.1%}")
 
 
 def main() -> None:

@@ -150,3 +150,25 @@ def test_joint_outline_cap_still_averages_out_outline_errors():
     joint = joint_transforms(fps, own, route, centres, grid, label,
                              JointParams(window_m=120.0, kernel="tricube", outline_points=40))
     assert np.median(_centre_errors(joint, T_true, fps)) < 0.65 * np.median(_centre_errors(own, T_true, fps))
+
+
+def test_a_window_of_one_straight_wall_keeps_its_seed_along_the_wall():
+    # at the ends of the route, or where the neighbours were rejected, a window may hold one wall:
+    # its cost is flat along the wall, and only the shift penalty keeps the seed's position
+    W, H = 200, 120
+    grid = Grid((GSD, 0.0, E0, 0.0, -GSD, N0 + H * GSD), W, H, "EPSG:32617")
+    rows, cols = np.mgrid[0:H, 0:W]
+    cx, cy = cols * GSD + GSD / 2, (H - rows) * GSD - GSD / 2
+    label = -np.ones((H, W), np.int32)
+    label[(cx >= 10) & (cx < 90) & (cy >= 30) & (cy < 50)] = 0        # an 80 m block, its street wall at y = 30
+    T_true = rigid2d(np.radians(25.0), np.array([E0 + 7.0, N0 - 3.0]))
+    inv = np.linalg.inv(T_true)
+    wall = np.column_stack([np.arange(30.0, 60.0, 0.25), np.full(120, 30.0)]) + [E0, N0]   # 30 m, no corner
+    fps = {0: wall @ inv[:2, :2].T + inv[:2, 2]}
+    moved = {}
+    for penalty in (0.0, 0.03):
+        out = joint_transforms(fps, T_true[None], np.array([0.0]), fps[0].mean(axis=0)[None], grid, label,
+                               JointParams(window_m=50.0, shift_penalty=penalty))
+        moved[penalty] = np.linalg.norm((fps[0] @ out[0][:2, :2].T + out[0][:2, 2]).mean(axis=0) - wall.mean(axis=0))
+    assert moved[0.03] < 0.05, moved
+    assert moved[0.0] > 1.0, moved       # without it the wall slides to the edge of the search

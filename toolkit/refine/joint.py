@@ -14,9 +14,12 @@ the footprints of every valid segment captured within ``window_m`` of it along t
 within ``2·window_m`` in space, so another pass of the route never joins), seeded by the segment's
 own transform and searched against every over-view outline around them: independent per-building
 outline errors average out, corners of other buildings fix the position along straight walls and
-the longer lever fixes the rotation. The window must stay short, because the true transform does
-change along the route (campus seed 1: the true transform of a segment applied to another one
-25–50 m along the route away is 0.23 m off at the median, 50–100 m away 0.53 m, 100–200 m away 1.1 m).
+the longer lever fixes the rotation. The search pays the segment search's shift penalty: a window
+may hold a single straight wall (at the ends of the route, or where the neighbours were rejected),
+whose cost is flat along itself, and only the penalty keeps it from sliding along the wall.
+The window must stay short, because the true transform does change along the route (campus
+seed 1: the true transform of a segment applied to another one 25–50 m along the route away is
+0.23 m off at the median, 50–100 m away 0.53 m, 100–200 m away 1.1 m).
 """
 
 from __future__ import annotations
