@@ -114,6 +114,18 @@ def run_pipeline(recipe: str, scene_dir: Path, out: Path, overrides=()):
 
 
 # --- bounded bench outputs (a variant's 36 runs hold ~4 GB with their PLY copies; the disk filled twice)
+def require_free_disk(folder: Path, gib: float) -> None:
+    """Stop with one line when the file system of ``folder`` has less than ``gib`` GiB free (a matrix
+    that fills the disk half-way leaves runs that failed for want of room, not of the code)."""
+    import shutil
+
+    folder.mkdir(parents=True, exist_ok=True)
+    free = shutil.disk_usage(folder).free / 2**30
+    if free < gib:
+        sys.exit(f"only {free:.1f} GiB free under {folder} (this bench needs {gib:.0f}): "
+                 "delete old data/*/out-* folders or scenes first")
+
+
 def slim_run(out: Path) -> str | None:
     """The sha256 of the run's registered.laz (to compare variants byte for byte once the folder is
     gone), after deleting registered.ply: the same points as the LAZ, three quarters of the folder."""

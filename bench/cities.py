@@ -70,12 +70,13 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from _common import REPO, bound_folders, kabsch_error, slim_run
+from _common import REPO, bound_folders, kabsch_error, require_free_disk, slim_run
 
 RAW = Path(__file__).resolve().parents[2] / "shared" / "data" / "raw"
 ROOT = REPO / "data" / "cities"
 OUT = ROOT / "out"
 KEEP_VARIANTS = 4  # data/cities/out-TAG folders kept whole (the newest); each run keeps registered.laz, not the PLY
+FREE_GIB, FREE_GIB_PER_RUN = 2.0, 0.1  # room asked before a matrix starts: a run keeps 30–80 MB, ~4× that while it runs
 KEEP_SLIM = 40     # older out-TAG folders kept with their metrics and logs only (~3 MB each)
 # --replicas: the same matrix with the street frame's units scaled by these (should change nothing;
 # the spread they show is the matrix's own, bench/matrix_floor.py)
@@ -591,6 +592,7 @@ def run_matrix(chosen: list[Scene], recipes: list[str], stamps: dict, manifests:
 
     if tag and not (ROOT / f"out-{tag}").exists():  # room for this variant's outputs
         bound_folders(list(ROOT.glob("out-*")), KEEP_VARIANTS - 1, KEEP_SLIM)
+    require_free_disk(ROOT, FREE_GIB + FREE_GIB_PER_RUN * len(runs))
     lock = threading.Lock()
     with ThreadPoolExecutor(max(1, jobs)) as pool:
         done = {(row["scene"], row["source"]): row for row in pool.map(work, runs)}
