@@ -202,7 +202,7 @@ def test_exhaustive_options_have_one_line_descriptions():
     for name, top in Exhaustive.Params.model_fields.items():
         if isinstance(top.annotation, type) and issubclass(top.annotation, BaseModel):
             fields.update({f"{name}.{key}": f for key, f in top.annotation.model_fields.items()})
-    assert len(fields) == 14 + 7 + 7 + 7 + 6 + 4  # the top level (5 groups), search, ground, consistency, joint, scale
+    assert len(fields) == 14 + 7 + 7 + 7 + 7 + 4  # the top level (5 groups), search, ground, consistency, joint, scale
     for name, f in fields.items():
         assert f.description and "\n" not in f.description and len(f.description) <= 120, name
 

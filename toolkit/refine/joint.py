@@ -14,9 +14,10 @@ the footprints of every valid segment captured within ``window_m`` of it along t
 within ``2·window_m`` in space, so another pass of the route never joins), seeded by the segment's
 own transform and searched against every over-view outline around them: independent per-building
 outline errors average out, corners of other buildings fix the position along straight walls and
-the longer lever fixes the rotation. The search pays the segment search's shift penalty: a window
-may hold a single straight wall (at the ends of the route, or where the neighbours were rejected),
-whose cost is flat along itself, and only the penalty keeps it from sliding along the wall.
+the longer lever fixes the rotation. A window may hold a single straight wall (at the ends of the
+route, or where the neighbours were rejected), whose cost is flat along itself: ``shift_penalty``
+(off by default) keeps it at the segment's own position, but also damps the window's corrections
+elsewhere.
 The window must stay short, because the true transform does change along the route (campus
 seed 1: the true transform of a segment applied to another one 25–50 m along the route away is
 0.23 m off at the median, 50–100 m away 0.53 m, 100–200 m away 1.1 m).
@@ -68,13 +69,13 @@ class JointConfig(ParamGroup):
     outline_points: int = Field(0, ge=0, description="cap on footprint points (0.5 m cells) per over-view outline (count; 0: all)")
     kernel: Literal["box", "tricube"] = Field(
         "box", description="weighting by route distance Δs: 'box' (all equal) or 'tricube' ((1 − (Δs/window)³)³)")
+    shift_penalty: float = Field(0.0, ge=0, description="cost of moving a segment from its own transform (m of chamfer per m; 0: none)")
 
     def search(self, *, rotation_step_deg: float, cell_m: float, max_points: int, truncate_m: float,
-               inlier_m: float, shift_penalty: float) -> JointParams:
-        """The pass's ``JointParams``: this group with the search's step, cell, cap, distances and shift penalty."""
+               inlier_m: float) -> JointParams:
+        """The pass's ``JointParams``: this group with the search's step, cell, cap and distances."""
         return JointParams(**self.model_dump(), rotation_step_deg=rotation_step_deg, cell_m=cell_m,
-                           max_points=max_points, truncate_m=truncate_m, inlier_m=inlier_m,
-                           shift_penalty=shift_penalty)
+                           max_points=max_points, truncate_m=truncate_m, inlier_m=inlier_m)
 
 
 class OutlineLabels:

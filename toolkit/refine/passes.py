@@ -335,8 +335,7 @@ def route_pass(r: Refinement, valid: np.ndarray, joint: JointConfig, rotation_wi
     T2d, anchors = f.T2d, input_anchors(r.street)
     if joint.window_m > 0:
         jp = joint.search(rotation_step_deg=min(0.5, s.rotation_step_deg), cell_m=2 * r.footprint_cell_m,
-                          max_points=r.max_footprint_points, truncate_m=s.truncate_m, inlier_m=s.inlier_m,
-                          shift_penalty=s.shift_penalty)
+                          max_points=r.max_footprint_points, truncate_m=s.truncate_m, inlier_m=s.inlier_m)
         T2d = joint_transforms(fps, T2d, r.route_s, anchors, r.overview.grid, np.asarray(r.overview.label_image),
                                jp, r.outlines, scale=r.points.scale, pivots_xy=r.points.pivots[:, :2])
     if rotation_window_m > 0:
