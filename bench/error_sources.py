@@ -50,10 +50,15 @@ def scene_of(out: Path, given: str | None) -> Path:
     return cities / hits[-1]
 
 
+def camera_arc(scene: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(truth camera XY (m,2), arc length (m,) in metres along their track)."""
+    cams = truth_centres(scene / "truth" / "cameras.txt")[:, :2]
+    return cams, np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(cams, axis=0), axis=1))])
+
+
 def route_positions(truth_xy: np.ndarray, scene: Path) -> np.ndarray:
     """Arc length (m) along the truth camera track at the camera nearest to each point."""
-    cams = truth_centres(scene / "truth" / "cameras.txt")[:, :2]
-    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(cams, axis=0), axis=1))])
+    cams, arc = camera_arc(scene)
     return arc[cKDTree(cams).query(truth_xy, workers=-1)[1]]
 
 
@@ -75,10 +80,8 @@ def captured_route_fraction(scene: Path) -> np.ndarray | None:
     drift = scene / "truth" / "drift.npz"
     if not drift.is_file():
         return None
-    camera = np.load(drift)["camera_index"]
-    cams = truth_centres(scene / "truth" / "cameras.txt")[:, :2]
-    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(cams, axis=0), axis=1))])
-    return arc[camera] / max(arc[-1], 1e-9)
+    _, arc = camera_arc(scene)
+    return arc[np.load(drift)["camera_index"]] / max(arc[-1], 1e-9)
 
 
 def own_transform_errors(street, points: np.ndarray, truth: np.ndarray, segments: list[dict]) -> np.ndarray:
