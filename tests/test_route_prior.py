@@ -189,3 +189,23 @@ def test_the_fine_rescoring_finds_the_best_pose_around_a_coarse_one(corner_m):
     best = max(_direct_score(fine, pts, a, t, pivot) for a, t in poses)
     assert got.score == pytest.approx(_direct_score(fine, pts, got.theta, got.t, pivot), abs=1e-6)
     assert got.score == pytest.approx(best, abs=1e-6)
+
+
+def test_windows_searched_near_their_rotation_place_the_route_as_every_rotation_does(tiny):
+    from toolkit.matching.route_scale import near_rotations
+
+    scene, street, overviews = tiny
+    model = load_sparse(scene)
+    cams = street.level(model.centres[capture_order(model.image_names)])[:, :2]
+    cfg = RoutePriorConfig()
+    full = place_route(street, overviews["overview.osm"], cams, cfg)
+    near = near_rotations(full, 1.0, cfg.window_m, cfg.rotation_step_deg, 15.0)
+    assert len(near) == len(full.windows) and all(9 <= len(v) <= 11 for v in near.values())   # 3° steps within 15°
+    again = place_route(street, overviews["overview.osm"], cams, cfg, rotations=near)
+    assert [p.theta for p in again.windows] == [p.theta for p in full.windows]
+    assert np.allclose([p.t for p in again.windows], [p.t for p in full.windows])
+    # the windows turned half a turn search only rotations that cannot place them
+    away = {k: (v + np.pi) % (2 * np.pi) for k, v in near.items()}
+    turned = place_route(street, overviews["overview.osm"], cams, cfg, rotations=away)
+    assert all(abs((p.theta - q.theta + np.pi) % (2 * np.pi) - np.pi) > np.deg2rad(90)
+               for p, q in zip(turned.windows, full.windows))

@@ -372,18 +372,20 @@ def route_maps(overview: OverviewSegments, cfg: RoutePriorConfig) -> RouteMaps:
 
 
 def place_route(street: StreetSegments, overview: OverviewSegments, cameras_xy: np.ndarray,
-                cfg: RoutePriorConfig, maps: RouteMaps | None = None, track: GpsTrack | None = None) -> RoutePlacement:
+                cfg: RoutePriorConfig, maps: RouteMaps | None = None, track: GpsTrack | None = None,
+                rotations: dict[int, np.ndarray] | None = None) -> RoutePlacement:
     """The placement of the route (levelled street xy → scene xy) and the prior it gives each segment.
     ``maps``: ``route_maps(overview, cfg)`` when already made. ``track``: the cameras' GPS positions
     (same order as ``cameras_xy``): each window also tries the placement that fits them, and the
-    chain pays for placements far from them."""
+    chain pays for placements far from them. ``rotations``: the rotations (radians) searched in
+    some windows, by the window's index along the route (``window_index``); the others search all."""
     arc = route_arclength(cameras_xy)
     pts, seg = _facade_cells(street, cfg.cell_m / 2)
     from scipy.spatial import cKDTree
 
     s_pt = arc[cKDTree(cameras_xy).query(pts)[1]]
     maps = maps or route_maps(overview, cfg)
-    found = _search_windows(pts, s_pt, arc, cameras_xy, maps, cfg, track)
+    found = _search_windows(pts, s_pt, arc, cameras_xy, maps, cfg, track, rotations or {})
     if not found.windows:
         return RoutePlacement(None, (), found.centres, np.zeros(0), np.zeros(0), 0.0, "no window with façades")
     windows, centres = found.windows, found.centres
@@ -434,18 +436,24 @@ class _WindowSearch:
     anchors: list[_WindowAnchor]
 
 
+def window_index(centre_m: float, window_m: float) -> int:
+    """The index along the route of the window centred ``centre_m`` of route (windows overlap by half)."""
+    return int(round(centre_m / (window_m / 2))) - 1
+
+
 def _search_windows(pts: np.ndarray, s_pt: np.ndarray, arc: np.ndarray, cameras_xy: np.ndarray, maps: RouteMaps,
-                    cfg: RoutePriorConfig, track: GpsTrack | None) -> _WindowSearch:
+                    cfg: RoutePriorConfig, track: GpsTrack | None,
+                    rotations: dict[int, np.ndarray]) -> _WindowSearch:
     """Every half-overlapping window of route: its best placements on the outlines, then those of its
     neighbours (``_seed_from_neighbours``), then, with GPS, the one that puts its cameras on the track."""
     starts = np.arange(0.0, max(arc[-1] - cfg.window_m / 2, 0.0) + 1e-9, cfg.window_m / 2)
     thetas = np.deg2rad(np.arange(0.0, 360.0, cfg.rotation_step_deg))
     windows, centres, window_pts, anchors, by_gps = [], [], [], [], []
-    for w0 in starts:
+    for k, w0 in enumerate(starts):
         sel = (s_pt >= w0) & (s_pt < w0 + cfg.window_m)
         if sel.sum() < 30:  # a park or an open square: the neighbours carry it
             continue
-        found = _window_placements(maps, pts[sel], thetas, cfg.candidates_per_window)
+        found = _window_placements(maps, pts[sel], rotations.get(k, thetas), cfg.candidates_per_window)
         found = _refine(maps.fine, pts[sel], found, cfg)[:cfg.placements_per_window]
         if not found:
             continue

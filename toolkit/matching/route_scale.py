@@ -9,7 +9,8 @@ so the raw objective favours small factors. ``scan_scale`` therefore scans candi
 (levelled street xy × g = metres) over a range with a coarse step, takes each value's height above
 the scan's robust trend (a Theil-Sen line in log g) in units of the residuals' robust spread (the
 *prominence*), scans finely around the most prominent coarse peak, and puts a parabola through the
-best fine value and its neighbours (in log g).
+best fine value and its neighbours (in log g). A window's rotation does not depend on the factor, so
+the fine scan searches each window only near the rotation its placement has at that coarse peak.
 
 A peak whose prominence is below ``min_prominence`` is no evidence of a scale (a route the placement
 cannot place at any scale looks like this), and the caller keeps its first guess.
@@ -27,10 +28,12 @@ from scipy.spatial import cKDTree
 
 from toolkit.matching.route_prior import (
     RouteMaps,
+    RoutePlacement,
     RoutePriorConfig,
     place_route,
     route_arclength,
     route_maps,
+    window_index,
 )
 from toolkit.types import OverviewSegments, StreetSegments
 
@@ -45,6 +48,7 @@ class ScaleSearchConfig(BaseModel):
     fine_reach: float = Field(0.075, gt=0, le=0.5, description="the fine scan covers the best coarse factor ± this (fraction)")
     stretch_windows: float = Field(3.0, gt=0, description="length of route scanned, the stretch with the most façades (route placement windows)")
     coarse_factor: float = Field(2.0, ge=1, description="the coarse scan's rotation step over the route placement's (factor)")
+    fine_rotation_reach_deg: float = Field(15.0, ge=0, le=180, description="the fine scan searches each window's rotations within this of its placement at the best coarse factor (degrees; 0: every rotation)")
     peak_apart: float = Field(0.15, gt=0, description="coarse peaks closer than this (relative) are one peak (fraction)")
     min_prominence: float = Field(4.5, ge=0, description="least prominence (robust z above the scan's trend) of a peak taken as the scale")
 
@@ -106,22 +110,40 @@ def coarse_config(cfg: RoutePriorConfig, search: ScaleSearchConfig) -> RoutePrio
     return cfg.model_copy(update={"rotation_step_deg": min(f * cfg.rotation_step_deg, 30.0)})
 
 
-def _value(street: StreetSegments, overview: OverviewSegments, cams_xy: np.ndarray, g: float,
-           cfg: RoutePriorConfig, maps: RouteMaps) -> float:
-    """The chain value of the route placement at factor g, its windows fixed in the street frame
-    (window_m × g metres), so that every factor places the same point sets."""
+def _placed(street: StreetSegments, overview: OverviewSegments, cams_xy: np.ndarray, g: float,
+            cfg: RoutePriorConfig, maps: RouteMaps, rotations: dict | None = None) -> RoutePlacement:
+    """The route placement at factor g, its windows fixed in the street frame (window_m × g metres),
+    so that every factor places the same point sets."""
     at = cfg.model_copy(update={"window_m": cfg.window_m * g})
-    return place_route(scaled_street(street, g), overview, cams_xy * g, at, maps).chain_value(cfg.link_cost)
+    return place_route(scaled_street(street, g), overview, cams_xy * g, at, maps, rotations=rotations)
 
 
 def _values(street, overview, cams_xy, grid: np.ndarray, cfg: RoutePriorConfig, maps: RouteMaps,
-            workers: int) -> np.ndarray:
-    if workers <= 1:
-        return np.array([_value(street, overview, cams_xy, g, cfg, maps) for g in grid])
-    from concurrent.futures import ThreadPoolExecutor
+            workers: int, rotations: dict | None = None) -> tuple[np.ndarray, list[RoutePlacement]]:
+    """The chain value per window (``RoutePlacement.chain_value``) at every factor, and the placements."""
+    def one(g):
+        return _placed(street, overview, cams_xy, g, cfg, maps, rotations)
 
-    with ThreadPoolExecutor(workers, "crossview-scale") as pool:
-        return np.array(list(pool.map(lambda g: _value(street, overview, cams_xy, g, cfg, maps), grid)))
+    if workers <= 1:
+        placed = [one(g) for g in grid]
+    else:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(workers, "crossview-scale") as pool:
+            placed = list(pool.map(one, grid))
+    return np.array([p.chain_value(cfg.link_cost) for p in placed]), placed
+
+
+def near_rotations(placed: RoutePlacement, g: float, window_m: float, step_deg: float,
+                   reach_deg: float) -> dict[int, np.ndarray]:
+    """Per window (``window_index``), the route placement's rotations (every ``step_deg``) within
+    ``reach_deg`` of the rotation its window has in ``placed`` (made at factor g)."""
+    grid = np.deg2rad(np.arange(0.0, 360.0, step_deg))
+    out = {}
+    for p, c in zip(placed.windows, placed.window_centres_m):
+        off = np.abs((grid - p.theta + np.pi) % (2 * np.pi) - np.pi)
+        out[window_index(c / g, window_m)] = grid[off <= np.deg2rad(max(reach_deg, step_deg / 2)) + 1e-9]
+    return out
 
 
 def _grid(lo: float, hi: float, step: float) -> np.ndarray:
@@ -169,10 +191,11 @@ def scan_scale(street: StreetSegments, overview: OverviewSegments, cams_xy: np.n
     n_eval = 0
     z_best = runner = z_runner = None
     coarse_gv = np.zeros((0, 2))
+    rotations = None
     if coarse:
         ccfg = coarse_config(cfg, search)
         g_c = _grid(lo, hi, search.coarse_step)
-        v_c = _values(street, overview, cams_xy, g_c, ccfg, maps, workers)
+        v_c, placed_c = _values(street, overview, cams_xy, g_c, ccfg, maps, workers)
         n_eval += len(g_c)
         coarse_gv = np.column_stack([g_c, v_c])
         z = prominence(g_c, v_c)
@@ -184,10 +207,13 @@ def scan_scale(street: StreetSegments, overview: OverviewSegments, cams_xy: np.n
             runner, z_runner = float(g_c[others[0]]), float(z[others[0]])
         centre = float(g_c[best])
         lo_f, hi_f = max(lo, centre / (1 + search.fine_reach)), min(hi, centre * (1 + search.fine_reach))
+        if search.fine_rotation_reach_deg > 0:  # a window's rotation does not depend on the factor
+            rotations = near_rotations(placed_c[best], centre, cfg.window_m, cfg.rotation_step_deg,
+                                       search.fine_rotation_reach_deg)
     else:
         lo_f, hi_f = lo, hi
     g_f = _grid(lo_f, hi_f, search.fine_step)
-    v_f = _values(street, overview, cams_xy, g_f, cfg, maps, workers)
+    v_f, _ = _values(street, overview, cams_xy, g_f, cfg, maps, workers, rotations)
     n_eval += len(g_f)
     i = int(np.argmax(v_f))
     return ScaleScan(_parabola_peak(g_f, v_f, i), float(v_f[i]), z_best, runner, z_runner, coarse_gv,
