@@ -62,7 +62,7 @@ def scan_run(task: tuple[str, str, list[dict], int]) -> list[dict]:
         rows.append({"scene": Path(scene_dir).name, "recipe": recipe, "variant": variant, "seconds": seconds,
                      "factor": scan.get("factor"), "prominence": scan.get("prominence"),
                      "at": capture.scale.value, "next": new.value, "settled": new.settled,
-                     "kept": "prominence" in new.matching.get("reason", "")})
+                     "kept": new.matching.get("reason", "").startswith("no distinct")})
     return rows
 
 

@@ -436,6 +436,11 @@ class _WindowSearch:
     anchors: list[_WindowAnchor]
 
 
+def rotation_grid(step_deg: float) -> np.ndarray:
+    """The rotations (radians) a window's placement is searched over."""
+    return np.deg2rad(np.arange(0.0, 360.0, step_deg))
+
+
 def window_index(centre_m: float, window_m: float) -> int:
     """The index along the route of the window centred ``centre_m`` of route (windows overlap by half)."""
     return int(round(centre_m / (window_m / 2))) - 1
@@ -447,7 +452,7 @@ def _search_windows(pts: np.ndarray, s_pt: np.ndarray, arc: np.ndarray, cameras_
     """Every half-overlapping window of route: its best placements on the outlines, then those of its
     neighbours (``_seed_from_neighbours``), then, with GPS, the one that puts its cameras on the track."""
     starts = np.arange(0.0, max(arc[-1] - cfg.window_m / 2, 0.0) + 1e-9, cfg.window_m / 2)
-    thetas = np.deg2rad(np.arange(0.0, 360.0, cfg.rotation_step_deg))
+    thetas = rotation_grid(cfg.rotation_step_deg)
     windows, centres, window_pts, anchors, by_gps = [], [], [], [], []
     for k, w0 in enumerate(starts):
         sel = (s_pt >= w0) & (s_pt < w0 + cfg.window_m)

@@ -31,6 +31,7 @@ from toolkit.matching.route_prior import (
     RoutePlacement,
     RoutePriorConfig,
     place_route,
+    rotation_grid,
     route_arclength,
     route_maps,
     window_index,
@@ -138,7 +139,7 @@ def near_rotations(placed: RoutePlacement, g: float, window_m: float, step_deg: 
                    reach_deg: float) -> dict[int, np.ndarray]:
     """Per window (``window_index``), the route placement's rotations (every ``step_deg``) within
     ``reach_deg`` of the rotation its window has in ``placed`` (made at factor g)."""
-    grid = np.deg2rad(np.arange(0.0, 360.0, step_deg))
+    grid = rotation_grid(step_deg)   # the placement's own grid: the same rotations, the same FFTs
     out = {}
     for p, c in zip(placed.windows, placed.window_centres_m):
         off = np.abs((grid - p.theta + np.pi) % (2 * np.pi) - np.pi)
