@@ -152,23 +152,46 @@ def test_joint_outline_cap_still_averages_out_outline_errors():
     assert np.median(_centre_errors(joint, T_true, fps)) < 0.65 * np.median(_centre_errors(own, T_true, fps))
 
 
-def test_a_window_of_one_straight_wall_keeps_its_seed_along_the_wall():
-    # at the ends of the route, or where the neighbours were rejected, a window may hold one wall:
-    # its cost is flat along the wall, and only the shift penalty keeps the seed's position
+def _straight_wall_scene():
+    """An 80 m block, its street wall at y = 30; the true levelled → scene transform."""
     W, H = 200, 120
     grid = Grid((GSD, 0.0, E0, 0.0, -GSD, N0 + H * GSD), W, H, "EPSG:32617")
     rows, cols = np.mgrid[0:H, 0:W]
     cx, cy = cols * GSD + GSD / 2, (H - rows) * GSD - GSD / 2
     label = -np.ones((H, W), np.int32)
-    label[(cx >= 10) & (cx < 90) & (cy >= 30) & (cy < 50)] = 0        # an 80 m block, its street wall at y = 30
-    T_true = rigid2d(np.radians(25.0), np.array([E0 + 7.0, N0 - 3.0]))
+    label[(cx >= 10) & (cx < 90) & (cy >= 30) & (cy < 50)] = 0
+    return grid, label, rigid2d(np.radians(25.0), np.array([E0 + 7.0, N0 - 3.0]))
+
+
+def _walls(T_true, spans):
+    """Levelled footprints of straight pieces of the wall at y = 30 (no corner), one per span (x0, x1)."""
     inv = np.linalg.inv(T_true)
-    wall = np.column_stack([np.arange(30.0, 60.0, 0.25), np.full(120, 30.0)]) + [E0, N0]   # 30 m, no corner
-    fps = {0: wall @ inv[:2, :2].T + inv[:2, 2]}
+    walls = [np.column_stack([np.arange(x0, x1, 0.25), np.full(int(round((x1 - x0) / 0.25)), 30.0)]) + [E0, N0]
+             for x0, x1 in spans]
+    return walls, {k: w @ inv[:2, :2].T + inv[:2, 2] for k, w in enumerate(walls)}
+
+
+def test_a_window_of_one_straight_wall_keeps_its_own_transform():
+    # at the ends of the route, or where the neighbours were rejected, a window may hold one wall: a
+    # re-fit would be its own search again, without the penalty that kept its position along the wall
+    grid, label, T_true = _straight_wall_scene()
+    _, fps = _walls(T_true, [(30.0, 60.0)])
+    seed = T_true @ rigid2d(0.0, np.array([0.4, 0.0]))       # the own search's result, 0.4 m along the wall
+    out = joint_transforms(fps, seed[None], np.array([0.0]), fps[0].mean(axis=0)[None], grid, label,
+                           JointParams(window_m=50.0))
+    np.testing.assert_array_equal(out[0], seed)
+
+
+def test_a_window_of_straight_walls_keeps_its_seed_along_them_with_the_shift_penalty():
+    # two pieces of one straight wall: the window's cost is flat along it, and only the shift penalty
+    # keeps the seed's position
+    grid, label, T_true = _straight_wall_scene()
+    walls, fps = _walls(T_true, [(22.0, 40.0), (46.0, 64.0)])
+    route, centres = np.array([0.0, 24.0]), np.array([f.mean(axis=0) for f in fps.values()])
     moved = {}
     for penalty in (0.0, 0.03):
-        out = joint_transforms(fps, T_true[None], np.array([0.0]), fps[0].mean(axis=0)[None], grid, label,
+        out = joint_transforms(fps, np.stack([T_true, T_true]), route, centres, grid, label,
                                JointParams(window_m=50.0, shift_penalty=penalty))
-        moved[penalty] = np.linalg.norm((fps[0] @ out[0][:2, :2].T + out[0][:2, 2]).mean(axis=0) - wall.mean(axis=0))
+        moved[penalty] = np.linalg.norm((fps[0] @ out[0][:2, :2].T + out[0][:2, 2]).mean(axis=0) - walls[0].mean(axis=0))
     assert moved[0.03] < 0.05, moved
-    assert moved[0.0] > 1.0, moved       # without it the wall slides to the edge of the search
+    assert moved[0.0] > 1.0, moved       # without it the walls slide to the edge of the search

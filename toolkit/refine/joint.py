@@ -150,8 +150,8 @@ def joint_transforms(footprints: dict[int, np.ndarray], T2d: np.ndarray, route_s
                      p: JointParams, outlines: AllOutlines | None = None,
                      scale: np.ndarray | None = None, pivots_xy: np.ndarray | None = None) -> np.ndarray:
     """(S,3,3) jointly re-estimated 2D transforms (levelled → scene) of the segments in ``footprints``
-    (their levelled footprints); the others keep T2d. ``route_s``: (S,) metres along the route;
-    ``anchors_xy``: (S,2) segment centres in the street frame (for the spatial gate); ``outlines``:
+    (their levelled footprints); the others, and a segment with no other in its window, keep T2d.
+    ``route_s``: (S,) metres along the route; ``anchors_xy``: (S,2) segment centres in the street frame (for the spatial gate); ``outlines``:
     the over-view's outline field, shared with other searches (made here when not given). ``scale``,
     ``pivots_xy``: (S,) and (S,2): each footprint was scaled by scale[j] about pivots_xy[j]
     (``toolkit.refine.scale``); segment i's window is then scaled as one body by scale[i] about its
@@ -174,6 +174,10 @@ def joint_transforms(footprints: dict[int, np.ndarray], T2d: np.ndarray, route_s
     searched, problems = [], []
     for row, i in enumerate(idx):
         near = idx[within[row]]
+        if len(near) < 2:
+            # alone in its window: a re-fit would be the segment's own search without its shift penalty,
+            # free to slide along a straight wall (the route's ends, rejected neighbours)
+            continue
         parts = footprints if scale is None else _at_scale_of(i, near, footprints, scale, pivots_xy)
         fp = joint_footprint(parts, near, ds[row, within[row]], p, labels, thinned)
         if len(fp) < 10:
