@@ -25,7 +25,8 @@ Finally (``joint.window_m`` > 0, route-aware), each segment's 2D transform is re
 registering together the footprints of all segments captured within that distance along the route
 (``toolkit.refine.joint``): the per-building errors of the over-view outlines (OSM digitising
 offsets, label-map edges) average out over several buildings, and other buildings' corners fix the
-position along straight walls. With ``rotation_window_m`` > 0, each segment's rotation is then the
+position along straight walls. A segment with no other in its window keeps its own transform (a
+re-fit would be its own search again, without the shift penalty). With ``rotation_window_m`` > 0, each segment's rotation is then the
 mean of its route neighbours' (``toolkit.refine.rotation``), turned about its own footprint centre:
 a compact façade fixes its rotation weakly, and the ground it carries far from it follows that error.
 Before the neighbour passes, each segment gets a scale (``scale``, ``toolkit.refine.scale``): the
