@@ -26,9 +26,10 @@ registering together the footprints of all segments captured within that distanc
 (``toolkit.refine.joint``): the per-building errors of the over-view outlines (OSM digitising
 offsets, label-map edges) average out over several buildings, and other buildings' corners fix the
 position along straight walls. A segment with no other in its window keeps its own transform (a
-re-fit would be its own search again, without the shift penalty). With ``rotation_window_m`` > 0, each segment's rotation is then the
-mean of its route neighbours' (``toolkit.refine.rotation``), turned about its own footprint centre:
-a compact façade fixes its rotation weakly, and the ground it carries far from it follows that error.
+re-fit would be its own search again, without the shift penalty). With ``rotation_window_m`` > 0,
+each segment's rotation is then the mean of its route neighbours' (``toolkit.refine.rotation``),
+turned about its own footprint centre: a compact façade fixes its rotation weakly, and the ground
+it carries far from it follows that error.
 Before the neighbour passes, each segment gets a scale (``scale``, ``toolkit.refine.scale``): the
 ratio of its registered to its input distance from the segments captured near it along the route,
 within 1 ± ``scale.max_deviation``; the later passes search its footprint at that scale, so the
