@@ -112,7 +112,7 @@ def coarse_config(cfg: RoutePriorConfig, search: ScaleSearchConfig) -> RoutePrio
 
 
 def _placed(street: StreetSegments, overview: OverviewSegments, cams_xy: np.ndarray, g: float,
-            cfg: RoutePriorConfig, maps: RouteMaps, rotations: dict | None = None) -> RoutePlacement:
+            cfg: RoutePriorConfig, maps: RouteMaps, rotations: dict[int, np.ndarray] | None = None) -> RoutePlacement:
     """The route placement at factor g, its windows fixed in the street frame (window_m × g metres),
     so that every factor places the same point sets."""
     at = cfg.model_copy(update={"window_m": cfg.window_m * g})
@@ -120,7 +120,7 @@ def _placed(street: StreetSegments, overview: OverviewSegments, cams_xy: np.ndar
 
 
 def _values(street, overview, cams_xy, grid: np.ndarray, cfg: RoutePriorConfig, maps: RouteMaps,
-            workers: int, rotations: dict | None = None) -> tuple[np.ndarray, list[RoutePlacement]]:
+            workers: int, rotations: dict[int, np.ndarray] | None = None) -> tuple[np.ndarray, list[RoutePlacement]]:
     """The chain value per window (``RoutePlacement.chain_value``) at every factor, and the placements."""
     def one(g):
         return _placed(street, overview, cams_xy, g, cfg, maps, rotations)

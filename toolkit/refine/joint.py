@@ -153,9 +153,10 @@ def joint_transforms(footprints: dict[int, np.ndarray], T2d: np.ndarray, route_s
     (their levelled footprints); the others, and a segment with no other in its window, keep T2d.
     ``route_s``: (S,) metres along the route; ``anchors_xy``: (S,2) segment centres in the street
     frame (for the spatial gate); ``outlines``: the over-view's outline field, shared with other
-    searches (made here when not given). ``scale``, ``pivots_xy``: (S,) and (S,2): each footprint was scaled by scale[j] about pivots_xy[j]
-    (``toolkit.refine.scale``); segment i's window is then scaled as one body by scale[i] about its
-    pivot, so that the neighbours keep their distances at segment i's scale."""
+    searches (made here when not given). ``scale``, ``pivots_xy``: (S,) and (S,2): each footprint was
+    scaled by scale[j] about pivots_xy[j] (``toolkit.refine.scale``); segment i's window is then scaled
+    as one body by scale[i] about its pivot, so that the neighbours keep their distances at segment
+    i's scale."""
     sp = SearchParams.model_construct(rotation_range_deg=p.rotation_deg, rotation_step_deg=p.rotation_step_deg,
                                       margin_m=0.0, truncate_m=p.truncate_m, inlier_m=p.inlier_m,
                                       shift_penalty=p.shift_penalty, subpixel=True)   # not validated: any rotation
